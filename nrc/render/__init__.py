@@ -1,0 +1,1 @@
+"""Renderers, selected by name from the ``renderer`` config group."""

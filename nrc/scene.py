@@ -1,0 +1,204 @@
+"""The scene contract (``../shared/SCENE.md``): validate a ``scene`` config and build a :class:`Scene`.
+
+Every key of the contract is checked on load; a bad value stops with one :class:`~nrc.errors.ConfigError`
+whose message names the key (``scene.volume.g must be in (-1, 1), got 1.2``). Keys beyond the contract are
+allowed where SCENE.md allows them (``scene.volume.procedural`` holds the built-in cloud's settings).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from nrc.errors import ConfigError
+from nrc.render.camera import Camera
+from nrc.transport.lights import DirectionalLight, EnvironmentLight, Light, PointLight
+from nrc.volume import DensityGrid, procedural_cloud, read_npz, read_vdb
+
+VOLUME_SOURCES = ("procedural", "vdb", "npz")
+LIGHT_TYPES = ("directional", "point", "environment")
+
+
+@dataclass(frozen=True)
+class Integrator:
+    max_scatter: int  # maximum number of real scattering events on a path
+    spp: int  # samples per pixel of one frame
+    seed: int  # random seed
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene: the medium, its phase and albedo, camera, lights and integrator settings."""
+
+    grid: DensityGrid
+    albedo: float
+    g: float
+    camera: Camera
+    lights: tuple[Light, ...]
+    integrator: Integrator
+
+    @property
+    def device(self) -> torch.device:
+        return self.grid.device
+
+    def lights_of(self, kind: type) -> list[Any]:
+        return [light for light in self.lights if isinstance(light, kind)]
+
+
+# ---------------------------------------------------------------------------- value checks
+def _get(node: Mapping[str, Any], key: str, where: str) -> Any:
+    if key not in node:
+        raise ConfigError(f"{where}.{key} is missing")
+    return node[key]
+
+
+def _number(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{key} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise ConfigError(f"{key} must be finite, got {value!r}")
+    return float(value)
+
+
+def _integer(value: Any, key: str, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{key} must be an integer, got {value!r}")
+    if value < minimum:
+        raise ConfigError(f"{key} must be >= {minimum}, got {value}")
+    return int(value)
+
+
+def _vec3(value: Any, key: str, nonnegative: bool = False) -> list[float]:
+    if not isinstance(value, (Sequence, ListConfig)) or isinstance(value, str) or len(value) != 3:
+        raise ConfigError(f"{key} must be a list of 3 numbers, got {value!r}")
+    out = [_number(v, key) for v in value]
+    if nonnegative and min(out) < 0:
+        raise ConfigError(f"{key} must be non-negative, got {out}")
+    return out
+
+
+def _existing_file(value: Any, key: str) -> Path:
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{key} must be a file path, got {value!r}")
+    path = Path(value).expanduser()
+    if not path.is_file():
+        raise ConfigError(f"{key}: file not found: {path}")
+    return path
+
+
+# ---------------------------------------------------------------------------- sections
+def load_density(volume: Mapping[str, Any]) -> np.ndarray | torch.Tensor:
+    """The raw density grid ``D`` named by a ``scene.volume`` config (no placement, no scaling)."""
+    source = _get(volume, "source", "scene.volume")
+    if source == "procedural":
+        proc = volume.get("procedural") or {}
+        res = proc.get("resolution", 128)
+        res_list = [res] * 3 if isinstance(res, int) else list(res)
+        if len(res_list) != 3 or any(isinstance(r, bool) or not isinstance(r, int) or r < 8 for r in res_list):
+            raise ConfigError(f"scene.volume.procedural.resolution must be an int >= 8 or 3 of them, got {res!r}")
+        seed = _integer(proc.get("seed", 0), "scene.volume.procedural.seed", 0)
+        return procedural_cloud(res_list, seed)
+    if source == "vdb":
+        path = _existing_file(volume.get("path"), "scene.volume.path")
+        return read_vdb(path, volume.get("grid"))
+    if source == "npz":
+        path = _existing_file(volume.get("path"), "scene.volume.path")
+        return read_npz(path, volume.get("grid"))
+    raise ConfigError(f"scene.volume.source must be one of {', '.join(VOLUME_SOURCES)}, got {source!r}")
+
+
+def _camera(cam: Mapping[str, Any], device: torch.device) -> Camera:
+    w = "scene.camera"
+    position = _vec3(_get(cam, "position", w), f"{w}.position")
+    look_at = _vec3(_get(cam, "look_at", w), f"{w}.look_at")
+    up = _vec3(_get(cam, "up", w), f"{w}.up")
+    fov = _number(_get(cam, "fov_y", w), f"{w}.fov_y")
+    if not 0 < fov < 180:
+        raise ConfigError(f"{w}.fov_y must be in (0, 180) degrees, got {fov}")
+    width = _integer(_get(cam, "width", w), f"{w}.width", 1)
+    height = _integer(_get(cam, "height", w), f"{w}.height", 1)
+    t = lambda v: torch.tensor(v, dtype=torch.float32, device=device)  # noqa: E731
+    fwd = np.subtract(look_at, position)
+    if np.linalg.norm(fwd) == 0:
+        raise ConfigError(f"{w}.look_at must differ from {w}.position")
+    if np.linalg.norm(np.cross(fwd, up)) <= 1e-6 * np.linalg.norm(fwd) * max(np.linalg.norm(up), 1e-30):
+        raise ConfigError(f"{w}.up must not be parallel to the view direction (look_at - position)")
+    return Camera.look_at(t(position), t(look_at), t(up), fov, width, height)
+
+
+def _light(spec: Mapping[str, Any], index: int, device: torch.device) -> Light:
+    w = f"scene.lights[{index}]"
+    if not isinstance(spec, (Mapping, DictConfig)):
+        raise ConfigError(f"{w} must be a mapping with a 'type' key, got {spec!r}")
+    kind = spec.get("type")
+    t = lambda v: torch.tensor(v, dtype=torch.float32, device=device)  # noqa: E731
+    if kind == "directional":
+        d = _vec3(_get(spec, "direction", w), f"{w}.direction")
+        n = math.sqrt(sum(c * c for c in d))
+        if n == 0:
+            raise ConfigError(f"{w}.direction must be non-zero")
+        irr = _vec3(_get(spec, "irradiance", w), f"{w}.irradiance", nonnegative=True)
+        return DirectionalLight(t([c / n for c in d]), t(irr))
+    if kind == "point":
+        pos = _vec3(_get(spec, "position", w), f"{w}.position")
+        inten = _vec3(_get(spec, "intensity", w), f"{w}.intensity", nonnegative=True)
+        return PointLight(t(pos), t(inten))
+    if kind == "environment":
+        scale = _number(spec.get("scale", 1.0), f"{w}.scale")
+        if scale < 0:
+            raise ConfigError(f"{w}.scale must be >= 0, got {scale}")
+        has_rad = spec.get("radiance") is not None
+        has_path = spec.get("path") is not None
+        if has_rad == has_path:
+            raise ConfigError(f"{w}: an environment light needs exactly one of 'radiance' or 'path'")
+        if has_rad:
+            return EnvironmentLight(t(_vec3(spec["radiance"], f"{w}.radiance", nonnegative=True)), None, scale)
+        from nrc.io.exr import read_exr
+
+        img, _ = read_exr(_existing_file(spec["path"], f"{w}.path"))
+        if not np.isfinite(img).all() or (img < 0).any():
+            raise ConfigError(f"{w}.path: environment image must be finite and non-negative")
+        return EnvironmentLight(None, t(img), scale)
+    raise ConfigError(f"{w}.type must be one of {', '.join(LIGHT_TYPES)}, got {kind!r}")
+
+
+def load_scene(scene_cfg: DictConfig | Mapping[str, Any], device: torch.device | str = "cpu") -> Scene:
+    """Validate a ``scene`` config section and build the :class:`Scene` on ``device``."""
+    cfg = OmegaConf.to_container(scene_cfg, resolve=True) if isinstance(scene_cfg, DictConfig) else scene_cfg
+    device = torch.device(device)
+    volume = _get(cfg, "volume", "scene")
+    w = "scene.volume"
+    scale = _number(_get(volume, "density_scale", w), f"{w}.density_scale")
+    if scale < 0:
+        raise ConfigError(f"{w}.density_scale must be >= 0, got {scale}")
+    albedo = _number(_get(volume, "albedo", w), f"{w}.albedo")
+    if not 0 <= albedo <= 1:
+        raise ConfigError(f"{w}.albedo must be in [0, 1], got {albedo}")
+    g = _number(_get(volume, "g", w), f"{w}.g")
+    if not -1 < g < 1:
+        raise ConfigError(f"{w}.g must be in (-1, 1), got {g}")
+    center = _vec3(_get(volume, "center", w), f"{w}.center")
+    diagonal = _number(_get(volume, "diagonal", w), f"{w}.diagonal")
+    if diagonal <= 0:
+        raise ConfigError(f"{w}.diagonal must be > 0, got {diagonal}")
+    camera = _camera(_get(cfg, "camera", "scene"), device)
+    lights_cfg = cfg.get("lights") or []
+    if not isinstance(lights_cfg, (list, tuple, ListConfig)):
+        raise ConfigError(f"scene.lights must be a list, got {lights_cfg!r}")
+    lights = tuple(_light(spec, i, device) for i, spec in enumerate(lights_cfg))
+    integ = _get(cfg, "integrator", "scene")
+    wi = "scene.integrator"
+    integrator = Integrator(
+        max_scatter=_integer(_get(integ, "max_scatter", wi), f"{wi}.max_scatter", 0),
+        spp=_integer(_get(integ, "spp", wi), f"{wi}.spp", 1),
+        seed=_integer(_get(integ, "seed", wi), f"{wi}.seed", 0),
+    )
+    grid = DensityGrid(torch.as_tensor(load_density(volume)), center, diagonal, scale, device)
+    return Scene(grid, albedo, g, camera, lights, integrator)

@@ -1,0 +1,1 @@
+"""Light transport: phase function, free-flight sampling, transmittance estimators, lights."""

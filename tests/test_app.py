@@ -1,0 +1,48 @@
+"""The Hydra app end to end: outputs on success, one clear message (no traceback) on bad input."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+from nrc.io import read_exr
+
+TINY = ["scene.volume.procedural.resolution=16", "scene.camera.width=12", "scene.camera.height=8"]
+
+
+def run_app(tmp_path, *overrides):
+    cmd = [sys.executable, "-m", "nrc", f"hydra.run.dir={tmp_path}", *TINY, *overrides]
+    return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+
+
+def test_app_writes_exr_png_and_metrics(tmp_path):
+    proc = run_app(tmp_path, "renderer=preview")
+    assert proc.returncode == 0, proc.stderr
+    img, _ = read_exr(tmp_path / "image.exr")
+    assert img.shape == (8, 12, 3) and np.isfinite(img).all()
+    assert (tmp_path / "preview.png").stat().st_size > 0
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["renderer"] == "preview" and metrics["time_total_s"] > 0
+    assert (tmp_path / ".hydra" / "config.yaml").is_file()  # the scene contract of this run
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("scene.volume.g=1.5", "scene.volume.g must be in (-1, 1)"),
+        ("device=cuda", "CUDA is not available"),
+        ("scene.lights.0.type=spot", "scene.lights[0].type"),
+    ],
+)
+def test_app_reports_bad_input_in_one_line(tmp_path, override, message):
+    if override == "device=cuda":
+        torch = pytest.importorskip("torch")
+        if torch.cuda.is_available():
+            pytest.skip("CUDA is available here")
+    proc = run_app(tmp_path, "renderer=preview", override)
+    assert proc.returncode == 2
+    assert message in proc.stderr
+    assert "Traceback" not in proc.stderr

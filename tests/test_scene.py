@@ -1,0 +1,118 @@
+"""Scene contract: presets compose and load; every bad value stops with one message naming the key."""
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import compose
+from nrc.errors import ConfigError
+from nrc.scene import load_scene
+from nrc.transport.lights import DirectionalLight, EnvironmentLight, PointLight
+
+SMALL = ["scene.volume.procedural.resolution=16", "scene.camera.width=8", "scene.camera.height=6"]
+
+
+@pytest.mark.parametrize(
+    "preset, kinds",
+    [
+        ("sun", [DirectionalLight]),
+        ("point", [PointLight]),
+        ("sky", [EnvironmentLight]),
+        ("sun_sky", [DirectionalLight, EnvironmentLight]),
+    ],
+)
+def test_presets_load_on_the_procedural_cloud(preset, kinds):
+    cfg = compose([f"scene={preset}", *SMALL])
+    scene = load_scene(cfg.scene)
+    assert [type(light) for light in scene.lights] == kinds
+    assert scene.grid.shape == (16, 16, 16)
+    assert scene.camera.width == 8 and scene.camera.height == 6
+    assert 0 < scene.grid.max_density <= 1
+
+
+def test_scene_keys_follow_the_contract():
+    cfg = compose(["scene=sun"])
+    assert set(cfg.scene) >= {"volume", "camera", "lights", "integrator"}
+    assert set(cfg.scene.volume) >= {"source", "path", "grid", "density_scale", "albedo", "g", "center", "diagonal"}
+    assert set(cfg.scene.camera) == {"position", "look_at", "up", "fov_y", "width", "height"}
+    assert set(cfg.scene.integrator) == {"max_scatter", "spp", "seed"}
+
+
+def test_directional_light_direction_is_normalised():
+    scene = load_scene(compose(["scene=sun", *SMALL, "scene.lights.0.direction=[0,-3,0]"]).scene)
+    torch.testing.assert_close(scene.lights[0].direction, torch.tensor([0.0, -1.0, 0.0]))
+
+
+def test_camera_frame_follows_the_contract():
+    scene = load_scene(compose(SMALL + ["scene.camera.position=[0,0,10]", "scene.camera.look_at=[0,0,0]"]).scene)
+    cam = scene.camera
+    torch.testing.assert_close(cam.right, torch.tensor([1.0, 0.0, 0.0]))  # cross(forward=-z, up=y) = +x
+    # row 0 is the top: its ray points up; column 0 points left (-x)
+    o, d = cam.generate_rays(torch.tensor([0]), torch.full((1, 2), 0.5))
+    assert d[0, 1] > 0 and d[0, 0] < 0
+
+
+BAD = [
+    ("scene.volume.density_scale=-1", "scene.volume.density_scale"),
+    ("scene.volume.g=1.0", "scene.volume.g"),
+    ("scene.volume.g=-1.5", "scene.volume.g"),
+    ("scene.volume.albedo=1.2", "scene.volume.albedo"),
+    ("scene.volume.albedo=-0.1", "scene.volume.albedo"),
+    ("scene.volume.diagonal=0", "scene.volume.diagonal"),
+    ("scene.camera.width=0", "scene.camera.width"),
+    ("scene.camera.height=-3", "scene.camera.height"),
+    ("scene.camera.fov_y=180", "scene.camera.fov_y"),
+    ("scene.camera.up=[0,-12,-150]", "scene.camera.up"),  # parallel to look_at - position
+    ("scene.integrator.spp=0", "scene.integrator.spp"),
+    ("scene.integrator.max_scatter=-1", "scene.integrator.max_scatter"),
+    ("scene.volume.source=vdb", "scene.volume.path"),
+    ("scene.volume.source=nonsense", "scene.volume.source"),
+    ("++scene.volume.path=/no/such/file.vdb", None),
+    ("scene.lights.0.type=spot", "scene.lights[0].type"),
+    ("scene.lights.0.irradiance=[1,-1,1]", "scene.lights[0].irradiance"),
+    ("scene.lights.0.direction=[0,0,0]", "scene.lights[0].direction"),
+    ("scene.volume.density_scale=abc", "scene.volume.density_scale"),
+    ("scene.volume.procedural.resolution=0", "scene.volume.procedural.resolution"),
+]
+
+
+@pytest.mark.parametrize("override, key", BAD)
+def test_bad_values_name_the_key(override, key):
+    overrides = SMALL + [override]
+    if key is None:  # a missing VDB file
+        overrides.append("scene.volume.source=vdb")
+        key = "file not found"
+    with pytest.raises(ConfigError, match=key.replace("[", r"\[").replace("]", r"\]")):
+        load_scene(compose(overrides).scene)
+
+
+def test_npz_volume_loads_with_the_right_axes(tmp_path):
+    D = np.zeros((5, 4, 3), dtype=np.float32)
+    D[4, 0, 0] = 1.0
+    np.savez(tmp_path / "v.npz", density=D)
+    cfg = compose(SMALL + ["scene.volume.source=npz", f"scene.volume.path={tmp_path / 'v.npz'}"])
+    scene = load_scene(cfg.scene)
+    assert scene.grid.shape == (5, 4, 3)
+    corner = scene.grid.grid_to_world(torch.tensor([[4.5, 0.5, 0.5]]))
+    assert float(scene.grid.lookup(corner)) == pytest.approx(1.0)
+
+
+def test_npz_with_several_arrays_needs_a_key(tmp_path):
+    np.savez(tmp_path / "v.npz", a=np.ones((2, 2, 2)), b=np.ones((3, 3, 3)))
+    base = SMALL + ["scene.volume.source=npz", f"scene.volume.path={tmp_path / 'v.npz'}"]
+    with pytest.raises(ConfigError, match="scene.volume.grid"):
+        load_scene(compose(base).scene)
+    assert load_scene(compose(base + ["scene.volume.grid=b"]).scene).grid.shape == (3, 3, 3)
+
+
+def test_corrupt_npz_is_a_config_error(tmp_path):
+    (tmp_path / "v.npz").write_bytes(b"not a zip at all")
+    cfg = compose(SMALL + ["scene.volume.source=npz", f"scene.volume.path={tmp_path / 'v.npz'}"])
+    with pytest.raises(ConfigError, match="scene.volume.path"):
+        load_scene(cfg.scene)
+
+
+def test_environment_needs_radiance_or_path():
+    cfg = compose(["scene=sky", *SMALL, "scene.lights.0.radiance=null"])
+    with pytest.raises(ConfigError, match=r"scene.lights\[0\]"):
+        load_scene(cfg.scene)
