@@ -1,0 +1,90 @@
+"""Build an encoding from a tiny-cuda-nn style config block (``{"otype": "HashGrid", ...}``).
+
+Keys per ``otype`` (case-insensitive; unknown keys are errors):
+
+* ``Identity``: none.
+* ``Frequency``: ``n_frequencies`` (>= 1).
+* ``TriangleWave``: ``n_frequencies`` (>= 1).
+* ``OneBlob``: ``n_bins`` (>= 1). Wrap-around is not a key: it is set for the periodic input
+  dimensions (the direction's azimuth) by the caller.
+* ``HashGrid``: ``n_levels`` (>= 1), ``n_features_per_level`` (>= 1), ``log2_hashmap_size`` (1..24),
+  ``base_resolution`` (>= 1), and exactly one of ``per_level_scale`` (>= 1) or ``max_resolution``
+  (>= ``base_resolution``; then ``b = (N_max / N_min)^(1 / (L - 1))``); optimiser keys ``lr``
+  (default 1e-2) and ``eps`` (default 1e-15).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from nrc.cache.config import ConfigReader
+from nrc.cache.encodings.frequency import FrequencyEncoding
+from nrc.cache.encodings.hashgrid import HashGridEncoding
+from nrc.cache.encodings.identity import IdentityEncoding
+from nrc.cache.encodings.oneblob import OneBlobEncoding
+from nrc.cache.encodings.triangle import TriangleWaveEncoding
+from nrc.cache.optim import AdamSettings
+from nrc.errors import ConfigError
+
+OTYPES = ("Identity", "Frequency", "TriangleWave", "OneBlob", "HashGrid")
+
+
+def build_encoding(
+    cfg: ConfigReader,
+    n_dims: int,
+    periodic: Sequence[bool],
+    generator: torch.Generator,
+    allowed: Sequence[str] = OTYPES,
+) -> tuple[nn.Module, AdamSettings | None]:
+    """Build the encoding described by ``cfg`` for ``n_dims`` inputs.
+
+    Args:
+        cfg: the encoding's config block.
+        n_dims: number of input columns it encodes.
+        periodic: per input column, whether it has period 1 (one-blob wraps those).
+        generator: CPU generator for trainable initial values.
+        allowed: the ``otype`` values valid at this place.
+
+    Returns:
+        ``(module, adam)``: the encoding (with ``out_dim``) and, for trainable encodings, the Adam
+        settings of its parameter group (``None`` otherwise).
+    """
+    otype = cfg.choice("otype", tuple(allowed))
+    adam = None
+    if otype == "Identity":
+        module: nn.Module = IdentityEncoding(n_dims)
+    elif otype == "Frequency":
+        module = FrequencyEncoding(n_dims, cfg.int("n_frequencies", lo=1, hi=24))
+    elif otype == "TriangleWave":
+        module = TriangleWaveEncoding(n_dims, cfg.int("n_frequencies", lo=1, hi=24))
+    elif otype == "OneBlob":
+        module = OneBlobEncoding(n_dims, cfg.int("n_bins", lo=1), wrap=periodic)
+    else:
+        module, adam = _build_hashgrid(cfg, n_dims, generator)
+    cfg.finish()
+    return module, adam
+
+
+def _build_hashgrid(cfg: ConfigReader, n_dims: int, generator: torch.Generator) -> tuple[nn.Module, AdamSettings]:
+    if n_dims != 3:
+        raise ConfigError(f"{cfg.key('otype')}: HashGrid encodes 3-D positions, not {n_dims}-D inputs")
+    n_levels = cfg.int("n_levels", lo=1)
+    n_features = cfg.int("n_features_per_level", lo=1)
+    log2_t = cfg.int("log2_hashmap_size", lo=1, hi=24)
+    if n_levels << log2_t >= 2**31:
+        raise ConfigError(f"{cfg.key('n_levels')} x 2^log2_hashmap_size must be < 2^31 (int32 rows)")
+    base = cfg.int("base_resolution", lo=1)
+    if cfg.has("per_level_scale") == cfg.has("max_resolution"):
+        raise ConfigError(f"{cfg.key('per_level_scale')}: give exactly one of per_level_scale and max_resolution")
+    if cfg.has("per_level_scale"):
+        scale = cfg.float("per_level_scale", lo=1.0)
+        cfg.int("max_resolution", None)
+    else:
+        n_max = cfg.int("max_resolution", lo=base)
+        cfg.float("per_level_scale", None)
+        scale = (n_max / base) ** (1.0 / (n_levels - 1)) if n_levels > 1 else 1.0
+    adam = AdamSettings(lr=cfg.float("lr", 1e-2, lo=0.0, lo_open=True), eps=cfg.float("eps", 1e-15, lo=0.0))
+    return HashGridEncoding(n_levels, n_features, log2_t, base, scale, generator=generator), adam

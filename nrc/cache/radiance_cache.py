@@ -1,0 +1,169 @@
+"""The radiance cache facade: queries with EMA weights, training steps on raw weights, checkpoints.
+
+Build it with :func:`build_radiance_cache` from the three Hydra config blocks:
+
+* ``cache`` (``conf/cache/default.yaml``): network, optimiser, EMA, loss and query settings, see
+  :mod:`nrc.cache.settings`.
+* ``encoding`` (``conf/encoding/*.yaml``): ``position`` and ``direction`` blocks, each a tiny-cuda-nn
+  style encoding config (``otype`` plus its keys, see :mod:`nrc.cache.encodings.factory`); they are
+  composed like tcnn's ``Composite``. ``position`` takes any ``otype``; ``direction`` takes
+  ``Identity``, ``Frequency``, ``TriangleWave`` (on the unit vector) or ``OneBlob`` (on the spherical
+  angles, azimuth wrapped).
+* ``extra_inputs`` (``conf/extra_inputs/*.yaml``): booleans ``density``, ``gradient``, ``laplacian``,
+  passed to the MLP unencoded (see :mod:`nrc.cache.inputs`).
+
+Units: positions in world units, directions unit vectors (any consistent convention: the cache
+stores whatever direction the training targets used), radiance linear RGB float32.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from nrc.cache.config import ConfigReader
+from nrc.cache.ema import WeightEMA
+from nrc.cache.encodings.composite import CompositeEncoding
+from nrc.cache.encodings.factory import build_encoding
+from nrc.cache.encodings.identity import IdentityEncoding
+from nrc.cache.inputs import ExtraInputs, InputBuilder
+from nrc.cache.loss import relative_l2_luminance
+from nrc.cache.network import CacheNetwork
+from nrc.cache.optim import build_adam
+from nrc.cache.settings import CacheSettings
+from nrc.volume.grid import DensityGrid
+
+DIRECTION_OTYPES = ("Identity", "Frequency", "TriangleWave", "OneBlob")
+
+
+class RadianceCache:
+    """A trained-online neural radiance cache ``L(x, d)`` for one medium.
+
+    Args:
+        inputs: builds raw network inputs (position, direction, extras) from world queries.
+        network: encodings + MLP, already on the target device.
+        optimizer: Adam over ``network``'s parameters.
+        settings: validated cache settings.
+
+    Attributes:
+        n_steps: optimiser steps taken.
+        n_skipped_steps: training steps skipped because the loss or a gradient was NaN/Inf.
+    """
+
+    def __init__(self, inputs: InputBuilder, network: CacheNetwork, optimizer: torch.optim.Optimizer,
+                 settings: CacheSettings) -> None:
+        self.inputs = inputs
+        self.network = network
+        self.optimizer = optimizer
+        self.settings = settings
+        self.ema = WeightEMA(network, settings.ema_alpha)
+        self.device = next(network.parameters()).device
+        self.n_steps = 0
+        self.n_skipped_steps = 0
+
+    @property
+    def n_parameters(self) -> int:
+        return sum(p.numel() for p in self.network.parameters())
+
+    def _raw(self, positions: Tensor, directions: Tensor) -> Tensor:
+        if positions.dim() != 2 or positions.shape[1] != 3 or directions.shape != positions.shape:
+            raise ValueError(f"positions and directions must both be (N, 3), got {tuple(positions.shape)} "
+                             f"and {tuple(directions.shape)}")
+        return self.inputs(positions, directions).to(self.device)
+
+    @torch.no_grad()
+    def query(self, positions: Tensor, directions: Tensor) -> Tensor:
+        """Cached radiance ``(N, 3)`` float32 at world ``positions`` ``(N, 3)`` towards ``directions`` ``(N, 3)``.
+
+        Uses the EMA weights, no autograd, in chunks of ``settings.query_chunk`` points. Predictions
+        are not clamped (a linear output can be slightly negative).
+        """
+        n = positions.shape[0]
+        out = torch.empty(n, 3, dtype=torch.float32, device=self.device)
+        chunk = self.settings.query_chunk
+        for start in range(0, n, chunk):
+            stop = min(start + chunk, n)
+            out[start:stop] = self.ema.shadow(self._raw(positions[start:stop], directions[start:stop]))
+        return out
+
+    def train_step(self, positions: Tensor, directions: Tensor, targets: Tensor) -> float:
+        """One Adam step on the raw weights towards radiance ``targets`` ``(N, 3)``; returns the loss.
+
+        An empty batch does nothing and returns 0. If the loss or any gradient is NaN/Inf the step is
+        skipped (weights, Adam and EMA state untouched), counted in ``n_skipped_steps``, and the
+        non-finite loss is returned.
+        """
+        if targets.shape != positions.shape:
+            raise ValueError(f"targets must be (N, 3) like positions, got {tuple(targets.shape)}")
+        if positions.shape[0] == 0:
+            return 0.0
+        raw = self._raw(positions, directions)
+        loss = relative_l2_luminance(self.network(raw), targets.to(self.device), self.settings.target_clamp)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grads = [p.grad for p in self.network.parameters() if p.grad is not None]
+        finite = torch.stack([torch.isfinite(loss)] + [torch.isfinite(g).all() for g in grads]).all()
+        if not bool(finite):
+            self.optimizer.zero_grad(set_to_none=True)
+            self.n_skipped_steps += 1
+            return float(loss.detach())
+        self.optimizer.step()
+        self.ema.update()
+        self.n_steps += 1
+        return float(loss.detach())
+
+    def state_dict(self) -> dict[str, Any]:
+        """Raw weights, EMA state, Adam state and step counters."""
+        return {
+            "network": self.network.state_dict(),
+            "ema": self.ema.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "n_steps": self.n_steps,
+            "n_skipped_steps": self.n_skipped_steps,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict` of a cache built from the same configs."""
+        self.network.load_state_dict(state["network"])
+        self.ema.load_state_dict(state["ema"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.n_steps = int(state["n_steps"])
+        self.n_skipped_steps = int(state["n_skipped_steps"])
+
+
+def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: Any, grid: DensityGrid,
+                         device: torch.device | str, seed: int) -> RadianceCache:
+    """Build a :class:`RadianceCache` from the ``cache``, ``encoding`` and ``extra_inputs`` config blocks.
+
+    Args:
+        cache_cfg: mapping or DictConfig, keys in :mod:`nrc.cache.settings`.
+        encoding_cfg: mapping with ``position`` and ``direction`` encoding blocks.
+        extra_inputs_cfg: mapping with booleans ``density``, ``gradient``, ``laplacian``.
+        grid: the medium's density grid.
+        device: device of the network (cpu or cuda).
+        seed: seed of the initial weights (same seed, same weights on every device).
+
+    Raises:
+        nrc.errors.ConfigError: a config value is missing, unknown or out of range (the message names it).
+    """
+    settings = CacheSettings.from_config(ConfigReader(cache_cfg, "cache"))
+    extras = ExtraInputs.from_config(ConfigReader(extra_inputs_cfg, "extra_inputs"))
+    enc_cfg = ConfigReader(encoding_cfg, "encoding")
+    pos_cfg, dir_cfg = enc_cfg.block("position"), enc_cfg.block("direction")
+    enc_cfg.finish()
+    direction_mode = "spherical" if dir_cfg.choice("otype", DIRECTION_OTYPES) == "OneBlob" else "vector"
+    inputs = InputBuilder(grid, direction_mode, extras)
+    (pos_dims, pos_periodic), (dir_dims, dir_periodic) = inputs.column_blocks[:2]
+    generator = torch.Generator().manual_seed(int(seed))
+    pos_enc, pos_adam = build_encoding(pos_cfg, pos_dims, pos_periodic, generator)
+    dir_enc, dir_adam = build_encoding(dir_cfg, dir_dims, dir_periodic, generator, allowed=DIRECTION_OTYPES)
+    parts = [(pos_enc, pos_dims), (dir_enc, dir_dims)]
+    if extras.n_dims:
+        parts.append((IdentityEncoding(extras.n_dims), extras.n_dims))
+    network = CacheNetwork(CompositeEncoding(parts), settings.n_neurons, settings.n_hidden_layers, settings.bf16,
+                           generator=generator).to(device)
+    groups = [(network.mlp, settings.mlp_adam)]
+    groups += [(enc, adam) for enc, adam in ((pos_enc, pos_adam), (dir_enc, dir_adam)) if adam is not None]
+    return RadianceCache(inputs, network, build_adam(groups, settings.betas), settings)

@@ -1,0 +1,58 @@
+"""Settings of the radiance cache read from the ``cache`` config block (``conf/cache/default.yaml``).
+
+Keys (all validated; unknown keys are errors):
+
+* ``network``: ``n_neurons`` (width, 16..1024; NRC 64/128), ``n_hidden_layers`` (1..16; NRC 3..6),
+  ``bf16`` (bfloat16 autocast for the MLP only).
+* ``optimizer`` (Adam of the MLP weights): ``lr``, ``beta1``, ``beta2``, ``eps``, ``weight_decay``
+  (L2 on MLP weights only). Hash-grid tables take ``lr``/``eps`` from their encoding block.
+* ``ema``: ``alpha`` in ``[0, 1)`` (0.99; 0 disables averaging).
+* ``loss``: ``target_clamp`` (> 0, radiance units): targets are clamped to ``[-c, c]``.
+* ``query_chunk``: points per forward pass in :meth:`RadianceCache.query` (bounds memory).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from nrc.cache.config import ConfigReader
+from nrc.cache.optim import AdamSettings
+
+
+@dataclass(frozen=True)
+class CacheSettings:
+    """Validated contents of the ``cache`` config block (see the module docstring for units and ranges)."""
+
+    n_neurons: int
+    n_hidden_layers: int
+    bf16: bool
+    mlp_adam: AdamSettings
+    betas: tuple[float, float]
+    ema_alpha: float
+    target_clamp: float
+    query_chunk: int
+
+    @classmethod
+    def from_config(cls, cfg: ConfigReader) -> CacheSettings:
+        net = cfg.block("network")
+        opt = cfg.block("optimizer")
+        ema = cfg.block("ema")
+        loss = cfg.block("loss")
+        settings = cls(
+            n_neurons=net.int("n_neurons", lo=16, hi=1024),
+            n_hidden_layers=net.int("n_hidden_layers", lo=1, hi=16),
+            bf16=net.bool("bf16", False),
+            mlp_adam=AdamSettings(
+                lr=opt.float("lr", lo=0.0, lo_open=True),
+                eps=opt.float("eps", lo=0.0),
+                weight_decay=opt.float("weight_decay", 0.0, lo=0.0),
+            ),
+            betas=(opt.float("beta1", 0.9, lo=0.0, hi=1.0, hi_open=True),
+                   opt.float("beta2", 0.99, lo=0.0, hi=1.0, hi_open=True)),
+            ema_alpha=ema.float("alpha", lo=0.0, hi=1.0, hi_open=True),
+            target_clamp=loss.float("target_clamp", lo=0.0, lo_open=True),
+            query_chunk=cfg.int("query_chunk", 1 << 16, lo=1),
+        )
+        for block in (net, opt, ema, loss, cfg):
+            block.finish()
+        return settings
