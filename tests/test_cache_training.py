@@ -1,0 +1,215 @@
+"""Loss, EMA, optimiser groups, NaN guards and checkpoints of the radiance cache."""
+
+import io
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from nrc.cache import RadianceCache, build_radiance_cache
+from nrc.cache.ema import WeightEMA
+from nrc.cache.encodings.hashgrid import HashGridEncoding
+from nrc.cache.loss import relative_l2_luminance
+from nrc.volume.grid import DensityGrid
+
+CACHE = {
+    "network": {"n_neurons": 32, "n_hidden_layers": 3, "bf16": False},
+    "optimizer": {"lr": 1e-2, "eps": 1e-15, "weight_decay": 1e-6},
+    "ema": {"alpha": 0.99},
+    "loss": {"target_clamp": 100.0},
+    "query_chunk": 100,
+}
+HASH_ONEBLOB = {
+    "position": {"otype": "HashGrid", "n_levels": 4, "n_features_per_level": 2, "log2_hashmap_size": 10,
+                 "base_resolution": 4, "per_level_scale": 2.0},
+    "direction": {"otype": "OneBlob", "n_bins": 4},
+}
+
+
+def _grid() -> DensityGrid:
+    return DensityGrid(torch.rand(8, 6, 5, generator=torch.Generator().manual_seed(0)), center=(0, 0, 0),
+                       diagonal=2.0, density_scale=1.0)
+
+
+def _cache(grid=None, seed=0, cache=CACHE, encoding=HASH_ONEBLOB, extras=None) -> RadianceCache:
+    return build_radiance_cache(cache, encoding, extras or {}, grid or _grid(), "cpu", seed)
+
+
+def _batch(grid: DensityGrid, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = grid.box.lo, grid.box.hi
+    x = lo + (hi - lo) * torch.rand(n, 3, generator=g)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    return x, d
+
+
+# ---------------------------------------------------------------- loss
+def test_loss_matches_hand_computation():
+    p = torch.tensor([[1.0, 2.0, 0.5], [0.0, 0.0, 0.0]])
+    t = torch.tensor([[0.5, 2.5, 1.0], [1.0, 0.0, 2.0]])
+    y0 = 0.299 * 1.0 + 0.587 * 2.0 + 0.114 * 0.5  # 1.53
+    row0 = (0.25 + 0.25 + 0.25) / (y0**2 + 0.01)
+    row1 = (1.0 + 0.0 + 4.0) / 0.01
+    loss = relative_l2_luminance(p, t, target_clamp=10.0)
+    assert loss.item() == pytest.approx((row0 + row1) / 2, rel=1e-6)
+
+
+def test_loss_gradient_treats_denominator_as_constant():
+    p = torch.tensor([[1.0, 2.0, 0.5], [0.3, 0.1, 0.2]], requires_grad=True)
+    t = torch.tensor([[0.5, 2.5, 1.0], [1.0, 0.0, 2.0]])
+    relative_l2_luminance(p, t, target_clamp=10.0).backward()
+    lum = (p.detach() * torch.tensor([0.299, 0.587, 0.114])).sum(dim=1, keepdim=True)
+    expected = 2.0 * (p.detach() - t) / (lum**2 + 0.01) / 2
+    torch.testing.assert_close(p.grad, expected)
+
+
+def test_loss_clamps_targets_and_handles_empty_batch():
+    p = torch.tensor([[1.0, 1.0, 1.0]])
+    huge = relative_l2_luminance(p, torch.tensor([[1e30, float("inf"), 5.0]]), target_clamp=8.0)
+    assert huge.item() == pytest.approx(relative_l2_luminance(p, torch.tensor([[8.0, 8.0, 5.0]]), 8.0).item())
+    empty = torch.zeros(0, 3, requires_grad=True)
+    loss = relative_l2_luminance(empty, torch.zeros(0, 3), target_clamp=8.0)
+    assert loss.item() == 0.0 and not torch.isnan(loss)
+    loss.backward()
+    assert empty.grad.shape == (0, 3)
+
+
+# ---------------------------------------------------------------- EMA
+def test_ema_follows_debiased_recursion():
+    model = nn.Linear(1, 1, bias=False)
+    alpha = 0.9
+    ema = WeightEMA(model, alpha)
+    ws = [3.0, -1.0, 2.5, 0.0, 7.0, 1.0]
+    expected, mu_prev = 0.0, 0.0
+    for k, w in enumerate(ws, start=1):
+        with torch.no_grad():
+            model.weight.fill_(w)
+        ema.update()
+        mu = 1.0 - alpha**k
+        expected = (alpha * mu_prev * expected + (1.0 - alpha) * w) / mu  # thesis eq. 4.3
+        mu_prev = mu
+        assert ema.shadow.weight.item() == pytest.approx(expected, rel=1e-6, abs=1e-6)
+        if k == 1:
+            assert ema.shadow.weight.item() == pytest.approx(w)  # debiased: no pull towards zero
+    assert model.weight.item() == ws[-1]  # the raw weights are untouched
+
+
+def test_ema_weights_serve_queries_and_raw_weights_train():
+    grid = _grid()
+    cache = _cache(grid)
+    x, d = _batch(grid, 64, 1)
+    raw_before = [p.detach().clone() for p in cache.network.parameters()]
+    for _ in range(3):
+        cache.train_step(x, d, torch.ones(64, 3))
+    assert cache.n_steps == 3 and cache.ema.step == 3
+    assert any(not torch.equal(a, b) for a, b in zip(raw_before, cache.network.parameters()))
+    with torch.no_grad():
+        raw_pred = cache.network(cache.inputs(x, d))
+        ema_pred = cache.ema.shadow(cache.inputs(x, d))
+    q = cache.query(x, d)
+    torch.testing.assert_close(q, ema_pred)
+    assert not torch.allclose(q, raw_pred)
+
+
+# ---------------------------------------------------------------- optimiser
+def test_adam_groups_follow_tcnn_conventions():
+    cache = _cache()
+    groups = cache.optimizer.param_groups
+    assert len(groups) == 2
+    mlp, table = groups
+    assert mlp["params"] == list(cache.network.mlp.parameters())
+    assert (mlp["lr"], mlp["eps"], mlp["weight_decay"]) == (1e-2, 1e-15, 1e-6)
+    hashgrid = cache.network.encoding.encodings[0]
+    assert isinstance(hashgrid, HashGridEncoding) and table["params"] == [hashgrid.table]
+    assert (table["lr"], table["eps"], table["weight_decay"]) == (1e-2, 1e-15, 0.0)
+    assert all(g["betas"] == (0.9, 0.99) for g in groups)
+
+
+# ---------------------------------------------------------------- robustness
+def test_no_nan_with_zero_huge_and_empty_targets():
+    grid = _grid()
+    cache = _cache(grid)
+    x, d = _batch(grid, 128, 2)
+    assert math.isfinite(cache.train_step(x, d, torch.zeros(128, 3)))
+    huge = torch.full((128, 3), 1e30)
+    huge[0, 0] = float("inf")
+    assert math.isfinite(cache.train_step(x, d, huge))
+    assert cache.train_step(x[:0], d[:0], torch.zeros(0, 3)) == 0.0
+    assert cache.n_steps == 2 and cache.n_skipped_steps == 0
+    assert all(torch.isfinite(p).all() for p in cache.network.parameters())
+    assert torch.isfinite(cache.query(x, d)).all()
+    assert cache.query(x[:0], d[:0]).shape == (0, 3)
+
+
+def test_non_finite_loss_or_gradient_skips_the_step():
+    grid = _grid()
+    cache = _cache(grid)
+    x, d = _batch(grid, 32, 3)
+    cache.train_step(x, d, torch.ones(32, 3))
+    before = {k: v.clone() for k, v in cache.state_dict()["network"].items()}
+    ema_before = cache.ema.shadow.mlp.layers[0].weight.clone()
+    nan_targets = torch.ones(32, 3)
+    nan_targets[5, 1] = float("nan")
+    assert math.isnan(cache.train_step(x, d, nan_targets))
+    handle = cache.network.mlp.layers[1].weight.register_hook(lambda g: torch.full_like(g, float("inf")))
+    assert math.isfinite(cache.train_step(x, d, torch.ones(32, 3)))  # finite loss, infinite gradient
+    handle.remove()
+    assert cache.n_skipped_steps == 2 and cache.n_steps == 1 and cache.ema.step == 1
+    for k, v in cache.state_dict()["network"].items():
+        assert torch.equal(v, before[k]), k
+    assert torch.equal(cache.ema.shadow.mlp.layers[0].weight, ema_before)
+    assert math.isfinite(cache.train_step(x, d, torch.ones(32, 3))) and cache.n_steps == 2
+
+
+def test_state_dict_round_trip_gives_identical_queries_and_training():
+    grid = _grid()
+    a = _cache(grid, seed=0)
+    for i in range(4):
+        x, d = _batch(grid, 64, 10 + i)
+        a.train_step(x, d, torch.rand(64, 3, generator=torch.Generator().manual_seed(i)))
+    buf = io.BytesIO()
+    torch.save(a.state_dict(), buf)
+    buf.seek(0)
+    b = _cache(grid, seed=123)
+    xq, dq = _batch(grid, 300, 99)
+    assert not torch.equal(a.query(xq, dq), b.query(xq, dq))
+    b.load_state_dict(torch.load(buf, weights_only=True))
+    assert torch.equal(a.query(xq, dq), b.query(xq, dq))
+    assert (b.n_steps, b.ema.step) == (a.n_steps, a.ema.step)
+    x, d = _batch(grid, 64, 50)
+    t = torch.rand(64, 3, generator=torch.Generator().manual_seed(50))
+    assert a.train_step(x, d, t) == b.train_step(x, d, t)  # Adam state restored too
+    assert torch.equal(a.query(xq, dq), b.query(xq, dq))
+
+
+def test_query_is_chunked_consistently_and_float32():
+    grid = _grid()
+    small = _cache(grid, cache={**CACHE, "query_chunk": 7})
+    big = _cache(grid, cache={**CACHE, "query_chunk": 1 << 16})
+    x, d = _batch(grid, 50, 4)
+    q = small.query(x.double(), d.double())
+    assert q.dtype == torch.float32 and q.shape == (50, 3)
+    torch.testing.assert_close(q, big.query(x, d))
+
+
+def test_bf16_autocast_runs_the_mlp_only():
+    grid = _grid()
+    cache = _cache(grid, cache={**CACHE, "network": {**CACHE["network"], "bf16": True}})
+    ref = _cache(grid)
+    x, d = _batch(grid, 64, 5)
+    assert math.isfinite(cache.train_step(x, d, torch.ones(64, 3)))
+    ref.train_step(x, d, torch.ones(64, 3))
+    q = cache.query(x, d)
+    assert q.dtype == torch.float32
+    assert cache.network.encoding.encodings[0].table.dtype == torch.float32
+    torch.testing.assert_close(q, ref.query(x, d), atol=0.05, rtol=0.05)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu():
+    grid = _grid()
+    cpu = _cache(grid)
+    gpu = build_radiance_cache(CACHE, HASH_ONEBLOB, {}, grid, "cuda", 0)
+    x, d = _batch(grid, 64, 6)
+    torch.testing.assert_close(gpu.query(x, d).cpu(), cpu.query(x, d), atol=1e-5, rtol=1e-4)
