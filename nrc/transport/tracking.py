@@ -1,0 +1,496 @@
+"""Free-flight sampling (delta tracking) and the batched tracking loop shared by the tracking estimators.
+
+Rays are ``origin (N, 3)`` with unit ``direction (N, 3)``; distances ``t`` are world units along the ray.
+All randomness comes from an explicit ``torch.Generator`` (same seed and inputs => same result), every tensor
+is float32, and nothing loops over rays: the loop runs over events on a compacted set of the unfinished rays.
+
+Majorants. Two modes share one loop (:func:`track`):
+
+* ``"global"``: one constant majorant ``m = majorants.global_majorant`` on the ray's segment inside the box.
+* ``"brick"``: the per-brick majorants of :class:`~nrc.volume.majorant.MajorantGrid`, walked with a batched 3-D
+  DDA (Amanatides & Woo). Each ray holds one exponential sample ``tau ~ Exp(1)`` of majorant optical depth.
+  When ``tau`` exceeds what is left of the current brick (``majorant * distance to the brick exit``), the ray
+  consumes that much and steps to the next brick (by memorylessness this is the same as restarting the
+  exponential at the boundary, minus one random number); otherwise it takes a tentative collision at
+  ``t + tau / majorant`` inside the brick and draws a new sample. A zero-majorant brick is crossed in one step
+  with no lookup, and so is the whole empty cube around it: :func:`skip_radius` stores per brick the radius
+  ``r`` of the cube of empty bricks centred on it, and the ray jumps to that cube's exit.
+
+The loop does one event per unfinished ray and iteration (a brick step for some rays, a lookup for the others,
+each on its compacted subset); finished rays are retired from the working set at once. Expected work is
+``(bricks crossed + majorant optical depth)`` per ray; every step consumes either a brick or an ``Exp(1)``
+share of a finite majorant optical depth, so the loop terminates (there is no step cap and no forced
+collision).
+
+Every looked-up ``sigma_t`` is checked against the majorant that was used for it; an underestimate raises
+:class:`MajorantError` (never clamped).
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+if TYPE_CHECKING:  # pragma: no cover
+    from nrc.volume.grid import DensityGrid
+    from nrc.volume.majorant import MajorantGrid
+
+MODES = ("global", "brick")
+DEFAULT_MODE = "brick"  # faster on both the dense and the sparse cloud (docs/transmittance.md)
+
+# Relative tolerance of the majorant check (trilinear interpolation and the density scale round by a few ulp).
+MAJORANT_RTOL = 1e-5
+# Tables of brick segments are built for at most this many elements (rays x segments) at once.
+TABLE_BUDGET = 1 << 24
+
+
+class MajorantError(RuntimeError):
+    """A looked-up extinction exceeded the majorant used to sample it (the majorant grid is wrong or stale)."""
+
+
+@dataclass
+class TrackingStats:
+    """Work counters of one call (summed over its chunks).
+
+    Attributes:
+        rays: rays that had a non-empty segment inside the box.
+        lookups: extinction lookups performed (``sigma_t`` evaluations, including the ones wasted by
+            block stepping and by frozen rays still in the working set): the cost.
+        collisions: tentative collisions inside the rays' segments that the estimator used: the algorithm's
+            own lookup count.
+        iterations: loop iterations (rounds of kernel launches).
+        advances: brick steps of the majorant walk (rays x bricks crossed).
+    """
+
+    rays: int = 0
+    lookups: int = 0
+    collisions: int = 0
+    iterations: int = 0
+    advances: int = 0
+
+    def add(self, other: TrackingStats) -> None:
+        self.rays += other.rays
+        self.lookups += other.lookups
+        self.collisions += other.collisions
+        self.iterations += other.iterations
+        self.advances += other.advances
+
+
+def _as_col(value: float | Tensor | None, like: Tensor, default: float) -> Tensor:
+    """A float, ``(N,)`` tensor or ``None`` as an ``(N,)`` float32 tensor on ``like``'s device."""
+    if value is None:
+        value = default
+    v = torch.as_tensor(value, dtype=torch.float32, device=like.device)
+    return v.expand(like.shape[0]) if v.dim() == 0 else v
+
+
+def clip_segments(
+    grid: DensityGrid, origin: Tensor, direction: Tensor, t0: float | Tensor | None, t1: float | Tensor | None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Clip ray segments ``[t0, t1]`` to the density box.
+
+    Returns ``(o, a, b)``: shifted origins ``o = origin + t0 * direction`` and the clipped segment ``[a, b]``
+    relative to them (``0 <= a <= b``, ``a == b`` for rays that miss the box or whose segment lies outside it),
+    so that ``t = t0 + a`` is the entry distance along the original ray. ``t0`` defaults to 0 and ``t1`` to
+    infinity (a ray to the box exit).
+    """
+    origin = origin.to(torch.float32)
+    direction = direction.to(torch.float32)
+    t0v = _as_col(t0, origin, 0.0)
+    t1v = _as_col(t1, origin, math.inf)
+    o = origin + t0v[:, None] * direction if t0 is not None else origin
+    near, far = grid.box.intersect(o, direction)
+    far = torch.minimum(far, t1v - t0v)
+    empty = ~(far > near)
+    zero = torch.zeros_like(near)
+    return o, torch.where(empty, zero, near), torch.where(empty, zero, far)
+
+
+def brick_segments(
+    majorants: MajorantGrid, origin: Tensor, direction: Tensor, a: Tensor, b: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Cut ray segments ``[a, b]`` (inside the box) at the brick planes.
+
+    A vectorised DDA: the crossings of every interior brick plane are computed per axis, clipped to
+    ``[a, b]`` and sorted, so each ray gets ``K = 1 + sum(bricks per axis - 1)`` consecutive pieces (unused
+    pieces have zero length at ``b``). The brick of a piece is the one holding its midpoint.
+
+    Returns:
+        ``(t_lo, t_hi, majorant, minorant)``, each ``(N, K)``: piece bounds and the bounds of ``sigma_t``
+        valid on each piece.
+    """
+    box_lo = majorants.grid.box.lo
+    size = majorants.brick_size
+    nb = majorants.shape
+    dev = origin.device
+    cols = [a[:, None]]
+    for ax in range(3):
+        if nb[ax] <= 1:
+            continue
+        planes = box_lo[ax] + size * torch.arange(1, nb[ax], device=dev, dtype=torch.float32)
+        dax = direction[:, ax : ax + 1]
+        zero = dax == 0
+        tc = (planes[None, :] - origin[:, ax : ax + 1]) / torch.where(zero, torch.ones_like(dax), dax)
+        cols.append(torch.where(zero, b[:, None], tc))
+    cols.append(b[:, None])
+    t = torch.cat(cols, dim=1)
+    t = torch.minimum(torch.maximum(t, a[:, None]), b[:, None])
+    if t.shape[1] > 2:
+        t = t.sort(dim=1).values
+    t_lo, t_hi = t[:, :-1], t[:, 1:]
+    mid = 0.5 * (t_lo + t_hi)
+    x = origin[:, None, :] + mid[..., None] * direction[:, None, :]
+    cell = ((x - box_lo) / size).floor()  # float: exact for any realistic brick count, half the memory
+    hi = torch.tensor(nb, device=dev, dtype=torch.float32) - 1
+    cell = torch.minimum(cell.clamp(min=0), hi)
+    flat = ((cell[..., 0] * nb[1] + cell[..., 1]) * nb[2] + cell[..., 2]).long()
+    maj = majorants.majorant.reshape(-1)[flat]
+    mnr = majorants.minorant.reshape(-1)[flat]
+    return t_lo, t_hi, maj, mnr
+
+
+def _chunks(n: int, per_ray: int, budget: int = TABLE_BUDGET) -> list[tuple[int, int]]:
+    size = max(1024, budget // max(1, per_ray))
+    return [(s, min(n, s + size)) for s in range(0, n, size)]
+
+
+def num_segments(majorants: MajorantGrid) -> int:
+    """Pieces per ray in :func:`brick_segments`."""
+    return 1 + sum(n - 1 for n in majorants.shape)
+
+
+def optical_depth_bounds(
+    majorants: MajorantGrid, origin: Tensor, direction: Tensor, a: Tensor, b: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``(tau_major, tau_minor)`` ``(N,)``: the brick majorant and minorant integrated over ``[a, b]``.
+
+    Same values as :meth:`MajorantGrid.integrate_bounds` (checked in the tests), computed without a loop over
+    DDA steps (chunked over rays to bound memory).
+    """
+    tau_major = torch.zeros_like(a)
+    tau_minor = torch.zeros_like(a)
+    for s, e in _chunks(a.shape[0], 12 * num_segments(majorants)):
+        t_lo, t_hi, maj, mnr = brick_segments(majorants, origin[s:e], direction[s:e], a[s:e], b[s:e])
+        length = t_hi - t_lo
+        tau_major[s:e] = (length * maj).sum(dim=1)
+        tau_minor[s:e] = (length * mnr).sum(dim=1)
+    return tau_major, tau_minor
+
+
+# ---------------------------------------------------------------------------------------------- core loop
+DELTA, RATIO, RESIDUAL = "delta", "ratio", "residual"
+
+# Columns of the per-ray walk state (one float32 row per ray, so compaction is a single index_select).
+_T, _TAU, _RATE, _CTRL, _TAUC, _PROD, _B = 0, 1, 2, 3, 4, 5, 6
+_TN = slice(7, 10)  # t of the next brick plane per axis
+_CELL = slice(10, 13)  # brick coordinates (exact small integers as floats)
+_TD = slice(13, 16)  # t between planes per axis
+_STEP = slice(16, 19)  # +-1 / 0 per axis
+_TN_CELL = slice(7, 13)  # advanced together by (TD, STEP)
+_TD_STEP = slice(13, 19)
+_O = slice(19, 22)
+_D = slice(22, 25)
+_RES = 25  # delta: collision distance
+_SKIP = 26  # empty-space radius of the current brick (see skip_radius)
+_NCOL = 27
+_FAR = 1e30  # plane spacing along an axis the ray does not move on (finite, so 0 * _FAR = 0)
+
+MAX_SKIP = 16
+_skip_cache: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def skip_radius(majorants: MajorantGrid, max_radius: int = MAX_SKIP) -> Tensor:
+    """Empty-space radius per brick ``(bx, by, bz)`` (float32): ``r >= 1`` when every brick within L-inf
+    distance ``r - 1`` has a zero majorant (bricks outside the grid count as empty), 0 for non-empty bricks;
+    capped at ``max_radius``. A ray in a brick of radius ``r`` can cross the ``(2r-1)^3`` empty cube around it
+    in one step. Cached per majorant grid (recomputed when its majorant tensor changes)."""
+    key = (majorants.majorant.data_ptr(), majorants.majorant._version, int(max_radius))
+    hit = _skip_cache.get(majorants)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    covered = (majorants.majorant > 0).to(torch.float32)[None, None]
+    r = torch.zeros(majorants.shape, dtype=torch.float32, device=covered.device)
+    for k in range(1, int(max_radius) + 1):
+        free = covered[0, 0] == 0
+        if not bool(free.any()):
+            break
+        r = torch.where(free, torch.full_like(r, float(k)), r)
+        covered = torch.nn.functional.max_pool3d(covered, 3, stride=1, padding=1)
+    _skip_cache[majorants] = (key, r)
+    return r
+
+
+class _Walk:
+    """Batched majorant walk: a brick DDA (Amanatides & Woo) that advances lazily, one brick per inner step,
+    only for the rays whose current exponential sample reaches past their current brick."""
+
+    def __init__(self, grid, majorants, kind: str, mode: str) -> None:
+        self.grid = grid
+        self.kind = kind
+        self.brick = mode == "brick"
+        self.m_glob = float(majorants.global_majorant)
+        if self.brick:
+            maj = majorants.majorant.reshape(-1).to(torch.float32)
+            mnr = majorants.minorant.reshape(-1).to(torch.float32)
+            if kind == RESIDUAL:
+                self.rate_grid, self.ctrl_grid = 0.5 * (maj - mnr), 0.5 * (maj + mnr)
+            else:
+                self.rate_grid, self.ctrl_grid = maj, None
+            nb = majorants.shape
+            dev = maj.device
+            self.nb = nb
+            self.hi = torch.tensor(nb, dtype=torch.float32, device=dev) - 1
+            self.zero3 = torch.zeros(3, dtype=torch.float32, device=dev)
+            self.strides = torch.tensor([nb[1] * nb[2], nb[2], 1], dtype=torch.float32, device=dev)
+            self.size = float(majorants.brick_size)
+            self.lo = majorants.grid.box.lo.to(torch.float32)
+            self.skip_grid = skip_radius(majorants).reshape(-1)
+
+    def _brick_params(self, S: Tensor) -> None:
+        """Set the rate (and control) columns from the brick coordinates."""
+        flat = (S[:, _CELL] * self.strides).sum(dim=1).long()
+        S[:, _RATE] = self.rate_grid[flat]
+        S[:, _SKIP] = self.skip_grid[flat]
+        if self.ctrl_grid is not None:
+            S[:, _CTRL] = self.ctrl_grid[flat]
+
+    def init_state(self, o: Tensor, d: Tensor, a: Tensor, b: Tensor, tau: Tensor) -> Tensor:
+        n = o.shape[0]
+        S = torch.zeros(n, _NCOL, dtype=torch.float32, device=o.device)
+        S[:, _T] = a
+        S[:, _TAU] = tau
+        S[:, _PROD] = 1.0
+        S[:, _B] = b
+        S[:, _O] = o
+        S[:, _D] = d
+        S[:, _RES] = b
+        if not self.brick:
+            S[:, _RATE] = self.m_glob
+            S[:, _TN] = math.inf
+            return S
+        # entry brick: the brick of a point a hair inside the segment (entry points on faces may round out)
+        nudge = torch.minimum(b - a, torch.full_like(a, 1e-4 * self.size))
+        p = o + (a + nudge)[:, None] * d
+        cell = torch.clamp(((p - self.lo) / self.size).floor(), min=self.zero3, max=self.hi)
+        step = torch.sign(d)
+        plane = self.lo + (cell + (step > 0).to(torch.float32)) * self.size
+        zero = d == 0
+        safe = torch.where(zero, torch.ones_like(d), d)
+        S[:, _TN] = torch.where(zero, torch.full_like(d, math.inf), torch.maximum((plane - o) / safe, a[:, None]))
+        S[:, _TD] = torch.where(zero, torch.full_like(d, _FAR), self.size / safe.abs())
+        S[:, _CELL] = cell
+        S[:, _STEP] = step
+        self._brick_params(S)
+        return S
+
+    @staticmethod
+    def needs_advance(S: Tensor) -> Tensor:
+        """Rays whose remaining exponential sample reaches past their current brick (or segment end)."""
+        t_exit = torch.minimum(S[:, _TN].amin(dim=1), S[:, _B])
+        return S[:, _TAU] >= S[:, _RATE] * (t_exit - S[:, _T])
+
+    def advance(self, S: Tensor, sub: Tensor) -> None:
+        """Move the rays ``sub`` (row indices of ``S``, in place) across one brick: their exponential sample
+        reaches past the current brick, so they consume its majorant optical depth and step to the next brick
+        (or to their segment end, ``t = b``). A zero-majorant brick is crossed in this one step, and so is the
+        whole empty cube of radius ``r`` around it (:func:`skip_radius`): the ray exits the cube through the
+        ``r``-th plane of some axis and every axis advances by the number of its planes crossed on the way."""
+        R = S.index_select(0, sub)
+        t = R[:, _T]
+        b = R[:, _B]
+        tn = R[:, _TN]
+        if self.brick:
+            reach = R[:, _SKIP].clamp(min=1.0)[:, None]  # planes per axis that bound the empty cube
+            td = R[:, _TD]
+            t_jump = (tn + (reach - 1.0) * td).amin(dim=1)
+        else:
+            t_jump = tn.amin(dim=1)
+        t_exit = torch.maximum(torch.minimum(t_jump, b), t)
+        dt = t_exit - t
+        R[:, _TAU].sub_(R[:, _RATE] * dt).clamp_(min=0.0)
+        if self.kind == RESIDUAL:
+            R[:, _TAUC].add_(R[:, _CTRL] * dt)
+        R[:, _T] = t_exit
+        if self.brick:
+            # planes crossed per axis up to t_exit (>= 1 on the exit axis; exact ties cross together)
+            count = torch.minimum((((t_exit[:, None] - tn) / td).floor() + 1.0).clamp(min=0.0), reach)
+            R[:, _TN_CELL] += count.repeat(1, 2) * R[:, _TD_STEP]
+            R[:, _CELL] = torch.clamp(R[:, _CELL], min=self.zero3, max=self.hi)
+            self._brick_params(R)
+        S.index_copy_(0, sub, R)
+
+
+def track(
+    grid: DensityGrid,
+    majorants: MajorantGrid,
+    origin: Tensor,
+    direction: Tensor,
+    a: Tensor,
+    b: Tensor,
+    gen: torch.Generator,
+    kind: str,
+    mode: str = DEFAULT_MODE,
+    roulette_threshold: float = 0.0,
+    stats: TrackingStats | None = None,
+) -> tuple[Tensor, Tensor] | Tensor:
+    """Run a tracking estimator over already clipped segments ``[a, b]`` (see :func:`clip_segments`).
+
+    Args:
+        kind: ``"delta"`` (free-flight sampling: returns ``(t, collided)`` with ``t`` relative to ``origin``,
+            ``t = b`` where nothing collided), ``"ratio"`` (ratio tracking: returns the weight ``T``) or
+            ``"residual"`` (residual ratio tracking with per-brick control ``(maj + min)/2`` and residual
+            majorant ``(maj - min)/2``; needs ``mode="brick"``; returns ``T``).
+        mode: ``"global"`` or ``"brick"`` majorant.
+        roulette_threshold: ratio/residual only: when the running weight of a ray drops below it (checked after
+            each tentative collision), the ray survives with probability equal to the weight and continues with
+            weight 1, else it stops with weight 0 (unbiased). 0 disables.
+        stats: if given, the work counters are added to it.
+    """
+    if mode not in MODES:
+        raise ValueError(f"majorant mode must be one of {MODES}, got {mode!r}")
+    if kind not in (DELTA, RATIO, RESIDUAL):
+        raise ValueError(f"unknown tracking kind {kind!r}")
+    if kind == RESIDUAL and mode != "brick":
+        raise ValueError("residual ratio tracking needs per-brick controls (mode='brick')")
+    thr = float(roulette_threshold)
+    n = origin.shape[0]
+    dev = origin.device
+    st = TrackingStats()
+    t_out = b.clone()
+    hit_out = torch.zeros(n, dtype=torch.bool, device=dev)
+    w_out = torch.ones_like(a)
+    idx = torch.nonzero(b > a).squeeze(1)
+    st.rays = int(idx.numel())
+    if st.rays == 0 or not majorants.global_majorant > 0:  # zero majorant everywhere: no collision, T = 1
+        if stats is not None:
+            stats.add(st)
+        return (t_out, hit_out) if kind == DELTA else w_out
+    walk = _Walk(grid, majorants, kind, mode)
+    tau0 = -torch.log1p(-torch.rand(idx.numel(), generator=gen, device=dev))
+    S = walk.init_state(origin[idx], direction[idx], a[idx], b[idx], tau0)
+    lim_scale = 1.0 + MAJORANT_RTOL
+
+    def retire(S: Tensor, idx: Tensor, done: Tensor) -> tuple[Tensor, Tensor]:
+        fin = torch.nonzero(done).squeeze(1)
+        rows = S.index_select(0, fin)
+        ids = idx[fin]
+        if kind == DELTA:
+            t_out[ids] = rows[:, _RES]
+            hit_out[ids] = rows[:, _RES] < rows[:, _B]
+        elif kind == RATIO:
+            w_out[ids] = rows[:, _PROD]
+        else:
+            w_out[ids] = torch.exp(-rows[:, _TAUC]) * rows[:, _PROD]
+        keep = torch.nonzero(~done).squeeze(1)
+        return S.index_select(0, keep), idx[keep]
+
+    advances = 0
+    iters = 0
+    while S.shape[0]:
+        # One event per ray and iteration: a brick step for the rays whose sample lies beyond their brick,
+        # a tentative collision for the others.
+        iters += 1
+        need = walk.needs_advance(S)
+        mv = torch.nonzero(need).squeeze(1)
+        rd = torch.nonzero(~need).squeeze(1)
+        nmv, nrd = int(mv.numel()), int(rd.numel())
+        done = torch.zeros(S.shape[0], dtype=torch.bool, device=dev)
+        if nmv:
+            advances += nmv
+            walk.advance(S, mv)
+            done[mv] = S[mv, _T] >= S[mv, _B]
+        if nrd:
+            st.lookups += nrd
+            st.collisions += nrd
+            R = S.index_select(0, rd)
+            u = torch.rand((nrd, 3), generator=gen, device=dev)
+            t, rate = R[:, _T], R[:, _RATE]  # rate > 0: the sample fell short of the brick end
+            tc = t + R[:, _TAU] / rate
+            sigma = grid.sigma_t(R[:, _O] + tc[:, None] * R[:, _D])
+            maj = rate + R[:, _CTRL] if kind == RESIDUAL else rate
+            bad = sigma > maj * lim_scale
+            if kind == DELTA:
+                fin = u[:, 1] * rate < sigma
+                R[:, _RES] = torch.where(fin, tc, R[:, _RES])
+            elif kind == RATIO:
+                w = R[:, _PROD] * (1.0 - sigma / rate)
+                if thr > 0:
+                    w = torch.where(w < thr, (u[:, 1] < w).to(w.dtype), w)
+                R[:, _PROD] = w
+                fin = w == 0
+            else:
+                ctrl = R[:, _CTRL]
+                tauc = R[:, _TAUC] + ctrl * (tc - t)
+                prod = R[:, _PROD] * (1.0 - (sigma - ctrl) / rate)
+                w = torch.exp(-tauc) * prod
+                if thr > 0:
+                    small = w < thr
+                    prod = torch.where(small, (u[:, 1] < w).to(w.dtype), prod)
+                    tauc = torch.where(small, torch.zeros_like(tauc), tauc)
+                    w = torch.where(small, prod, w)
+                R[:, _TAUC] = tauc
+                R[:, _PROD] = prod
+                fin = w == 0
+            R[:, _T] = tc
+            R[:, _TAU] = -torch.log1p(-u[:, 0])
+            S.index_copy_(0, rd, R)
+            done[rd] = fin
+            nbad = int(bad.sum())
+            if nbad:
+                worst = float((sigma - maj)[bad].max())
+                raise MajorantError(
+                    f"sigma_t exceeded the {mode} majorant by {worst:g} at {nbad} lookup(s): "
+                    "the majorant grid does not bound the density (stale density_scale?)"
+                )
+        if bool(done.any()):
+            S, idx = retire(S, idx, done)
+    st.iterations += iters
+    st.advances += advances
+    if stats is not None:
+        stats.add(st)
+    return (t_out, hit_out) if kind == DELTA else w_out
+
+
+# ---------------------------------------------------------------------------------------------- public API
+def sample_free_flight(
+    grid: DensityGrid,
+    majorants: MajorantGrid,
+    origin: Tensor,
+    direction: Tensor,
+    t_max: float | Tensor | None,
+    gen: torch.Generator,
+    mode: str = DEFAULT_MODE,
+    return_stats: bool = False,
+) -> tuple[Tensor, Tensor] | tuple[Tensor, Tensor, TrackingStats]:
+    """Delta tracking: sample the distance to the first real collision along each ray.
+
+    Args:
+        grid: the density grid (``sigma_t`` lookups).
+        majorants: a :class:`~nrc.volume.majorant.MajorantGrid` built for ``grid`` at its density scale.
+        origin: ``(N, 3)`` ray origins (inside or outside the box).
+        direction: ``(N, 3)`` unit directions.
+        t_max: float, ``(N,)`` tensor or ``None`` (= infinity): only collisions before ``t_max`` count.
+        gen: the random generator.
+        mode: ``"brick"`` (per-brick majorants, the default: faster) or ``"global"``.
+        return_stats: also return a :class:`TrackingStats`.
+
+    Returns:
+        ``(t, collided)``: ``(N,)`` float32 and bool. ``t`` is the collision distance from ``origin`` where
+        ``collided``, else ``t_max`` (``inf`` if ``t_max`` is ``None``): the ray escaped the box or reached
+        ``t_max``. The distance has density ``sigma_t(t) exp(-tau(t))`` on the segment.
+
+    Raises:
+        MajorantError: a looked-up ``sigma_t`` exceeded the majorant used.
+    """
+    direction = direction.to(torch.float32)
+    o, a, b = clip_segments(grid, origin, direction, None, t_max)
+    st = TrackingStats()
+    t_rel, hit = track(grid, majorants, o, direction, a, b, gen, DELTA, mode, stats=st)
+    t_end = _as_col(t_max, o, math.inf)
+    t = torch.where(hit, t_rel, t_end)
+    return (t, hit, st) if return_stats else (t, hit)
