@@ -72,6 +72,42 @@ def orthonormal_basis(n: Tensor) -> tuple[Tensor, Tensor]:
     return t, bb
 
 
+def hg_sample_cos(g: float | Tensor, u0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Sample the scattering cosine of the Henyey–Greenstein phase function.
+
+    Args:
+        g: asymmetry in ``(-1, 1)``: a float or a tensor broadcastable against ``u0``.
+        u0: uniform numbers in ``[0, 1)``, any shape; ``s = 2 u0 - 1``.
+
+    Returns:
+        ``(mu, sin_theta, pdf)``: ``mu`` (exactly ``s`` at ``g = 0``), ``sin_theta = sqrt((1-mu)(1+mu))`` from the
+        division-free forms (full relative precision as ``|g| -> 1``) and the density per steradian.
+    """
+    u0 = u0.to(torch.float32)
+    g = _as_g(g, u0)
+    s = 2.0 * u0 - 1.0
+    # 1 -+ s straight from u0 (not from the rounded s) and d = 1 + g s as a sum of non-negative terms, so that
+    # both stay accurate where they are small (s -> -1 with g -> 1, s -> 1 with g -> -1)
+    one_ps = 2.0 * u0
+    one_ms = 2.0 * (1.0 - u0)
+    d = torch.where(g >= 0, (1.0 - g) + g * one_ps, (1.0 + g) - g * one_ms)
+    d2 = d * d
+    # 2 + g (1+s) and 2 - g (1-s), also as sums of non-negative terms for either sign of g
+    pos = g >= 0
+    fa = torch.where(pos, 2.0 + g * one_ps, 2.0 * (1.0 + g) - g * one_ms)
+    fb = torch.where(pos, 2.0 * (1.0 - g) + g * one_ps, 2.0 - g * one_ms)
+    one_minus_mu = (1.0 - g) ** 2 * one_ms * fa / (2.0 * d2)
+    one_plus_mu = (1.0 + g) ** 2 * one_ps * fb / (2.0 * d2)
+    g2 = g * g
+    mu_poly = (s + 0.5 * g * (3.0 + s * s) + g2 * s + 0.5 * g2 * g * (s * s - 1.0)) / d2
+    mu = torch.where(g >= 0.5, 1.0 - one_minus_mu, torch.where(g <= -0.5, one_plus_mu - 1.0, mu_poly))
+    mu = mu.clamp(-1.0, 1.0)
+    sin_theta = (one_minus_mu * one_plus_mu).clamp(min=0.0).sqrt()
+    one_m_g2 = (1.0 - g) * (1.0 + g)
+    pdf = INV_4PI * d2 * d / (one_m_g2 * one_m_g2)
+    return mu, sin_theta, pdf
+
+
 def hg_sample(g: float | Tensor, direction: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Sample an outgoing propagation direction from the Henyey–Greenstein phase function.
 
@@ -88,22 +124,8 @@ def hg_sample(g: float | Tensor, direction: Tensor, u: Tensor) -> tuple[Tensor, 
     """
     direction = direction.to(torch.float32)
     u = u.to(torch.float32)
-    g = _as_g(g, direction)
-    s = 2.0 * u[:, 0] - 1.0
-    one_ms = 1.0 - s
-    one_ps = 1.0 + s
-    d = 1.0 + g * s
-    d2 = d * d
-    one_minus_mu = (1.0 - g) ** 2 * one_ms * (2.0 + g * one_ps) / (2.0 * d2)
-    one_plus_mu = (1.0 + g) ** 2 * one_ps * (2.0 - g * one_ms) / (2.0 * d2)
-    g2 = g * g
-    mu_poly = (s + 0.5 * g * (3.0 + s * s) + g2 * s + 0.5 * g2 * g * (s * s - 1.0)) / d2
-    mu = torch.where(g >= 0.5, 1.0 - one_minus_mu, torch.where(g <= -0.5, one_plus_mu - 1.0, mu_poly))
-    mu = mu.clamp(-1.0, 1.0)
-    sin_theta = (one_minus_mu * one_plus_mu).clamp(min=0.0).sqrt()
+    mu, sin_theta, pdf = hg_sample_cos(g, u[:, 0])
     phi = (2.0 * math.pi) * u[:, 1]
     t, b = orthonormal_basis(direction)
     new_dir = (sin_theta * torch.cos(phi))[:, None] * t + (sin_theta * torch.sin(phi))[:, None] * b + mu[:, None] * direction
-    one_m_g2 = (1.0 - g) * (1.0 + g)
-    pdf = INV_4PI * d2 * d / (one_m_g2 * one_m_g2)
     return new_dir, pdf
