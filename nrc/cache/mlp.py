@@ -30,5 +30,5 @@ class MLP(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         for layer in self.layers[:-1]:
-            x = torch.relu(layer(x))
+            x = torch.relu_(layer(x))  # in place: the matmul's backward does not need its own output
         return self.layers[-1](x)

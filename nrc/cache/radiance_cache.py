@@ -23,6 +23,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from nrc.cache.allocator import retain_freed_memory
 from nrc.cache.config import ConfigReader
 from nrc.cache.ema import WeightEMA
 from nrc.cache.encodings.composite import CompositeEncoding
@@ -103,9 +104,10 @@ class RadianceCache:
         loss = relative_l2_luminance(self.network(raw), targets.to(self.device), self.settings.target_clamp)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        grads = [p.grad for p in self.network.parameters() if p.grad is not None]
-        finite = torch.stack([torch.isfinite(loss)] + [torch.isfinite(g).all() for g in grads]).all()
-        if not bool(finite):
+        # NaN/Inf anywhere in a gradient makes its sum non-finite (one cheap reduction per tensor; a sum
+        # that overflows float32 is treated as non-finite as well).
+        sums = [loss.detach()] + [p.grad.sum() for p in self.network.parameters() if p.grad is not None]
+        if not bool(torch.isfinite(torch.stack(sums)).all()):
             self.optimizer.zero_grad(set_to_none=True)
             self.n_skipped_steps += 1
             return float(loss.detach())
@@ -145,9 +147,14 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
         device: device of the network (cpu or cuda).
         seed: seed of the initial weights (same seed, same weights on every device).
 
+    On CPU this also calls :func:`nrc.cache.allocator.retain_freed_memory` (process-wide glibc malloc
+    tuning; without it large temporaries are page-faulted anew on every step).
+
     Raises:
         nrc.errors.ConfigError: a config value is missing, unknown or out of range (the message names it).
     """
+    if torch.device(device).type == "cpu":
+        retain_freed_memory()
     settings = CacheSettings.from_config(ConfigReader(cache_cfg, "cache"))
     extras = ExtraInputs.from_config(ConfigReader(extra_inputs_cfg, "extra_inputs"))
     enc_cfg = ConfigReader(encoding_cfg, "encoding")

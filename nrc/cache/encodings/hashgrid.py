@@ -62,7 +62,8 @@ class _Interpolate(torch.autograd.Function):
         idx, w = ctx.saved_tensors
         grad = torch.zeros(ctx.table_shape, dtype=w.dtype, device=w.device)
         flat_idx = idx.view(-1)
-        for rows, g in zip(grad.view(ctx.table_shape[0], -1), grad_out):
+        # grad_out arrives as a transposed view of the (N, L * F) output gradient: make N innermost.
+        for rows, g in zip(grad.view(ctx.table_shape[0], -1), grad_out.contiguous()):
             rows.index_add_(0, flat_idx, (g[:, None, :] * w).view(-1))
         return grad, None, None
 
@@ -133,9 +134,10 @@ class HashGridEncoding(nn.Module):
         frac = pos - cell
         # Per-axis index terms of the lower and upper vertex: (c m) mod T and ((c + 1) m) mod T, in int64.
         lower = (cell.to(torch.int64) * self._mult) & mask
-        upper = (lower + self._mult) & mask
-        terms = torch.stack((lower, upper), dim=2).to(torch.int32)  # (L, 3, 2, N)
-        tx, ty, tz = terms.unbind(1)
+        terms = torch.empty(n_levels, 3, 2, n, dtype=torch.int32, device=x.device)
+        terms[:, :, 0] = lower
+        terms[:, :, 1] = (lower + self._mult) & mask
+        tx, ty, tz = terms.unbind(1)  # (L, 2, N) each
         tz = tz + self._level_offset
         idx = torch.empty(n_levels, 2, 2, 2, n, dtype=torch.int32, device=x.device)
         nd = self.n_dense_levels
@@ -145,7 +147,10 @@ class HashGridEncoding(nn.Module):
         if nd < n_levels:  # (i p0 ^ j p1 ^ k p2) mod T
             xy = tx[nd:, :, None] ^ ty[nd:, None, :]
             torch.bitwise_xor(xy[:, :, :, None], tz[nd:, None, None], out=idx[nd:])
-        wx, wy, wz = torch.stack((1.0 - frac, frac), dim=2).unbind(1)  # (L, 2, N) each
+        w1 = torch.empty(n_levels, 3, 2, n, dtype=torch.float32, device=x.device)
+        torch.sub(1.0, frac, out=w1[:, :, 0])
+        w1[:, :, 1] = frac
+        wx, wy, wz = w1.unbind(1)  # (L, 2, N) each
         w = (wx[:, :, None] * wy[:, None, :])[:, :, :, None] * wz[:, None, None]
         return idx.view(n_levels, 8, n), w.view(n_levels, 8, n)
 
