@@ -73,6 +73,8 @@ ONEBLOB = {"otype": "OneBlob", "n_bins": 4}
         (CACHE, {"position": {**HASH, "log2_hashmap_size": 30}, "direction": ONEBLOB}, {},
          "encoding.position.log2_hashmap_size must be <= 24"),
         (CACHE, {"position": {**HASH, "n_level": 4}, "direction": ONEBLOB}, {}, "unknown key(s) n_level"),
+        (CACHE, {"position": {**HASH, "n_levels": 16, "per_level_scale": 4.0}, "direction": ONEBLOB}, {},
+         "encoding.position.per_level_scale: the finest resolution"),
         (CACHE, {"position": HASH, "direction": HASH}, {}, "encoding.direction.otype must be one of"),
         (CACHE, {"position": {"otype": "Gaussian"}, "direction": ONEBLOB}, {}, "encoding.position.otype"),
         (CACHE, {"position": {"otype": "Frequency", "n_frequencies": 0}, "direction": ONEBLOB}, {},

@@ -213,3 +213,13 @@ def test_cuda_matches_cpu():
     gpu = build_radiance_cache(CACHE, HASH_ONEBLOB, {}, grid, "cuda", 0)
     x, d = _batch(grid, 64, 6)
     torch.testing.assert_close(gpu.query(x, d).cpu(), cpu.query(x, d), atol=1e-5, rtol=1e-4)
+
+
+def test_retain_freed_memory_is_idempotent():
+    from nrc.cache.allocator import retain_freed_memory
+
+    first = retain_freed_memory()
+    assert isinstance(first, bool) and retain_freed_memory() == first
+    x = torch.empty(1 << 24)  # a 64 MiB block is allocated and freed normally afterwards
+    x.fill_(1.0)
+    assert x.sum().item() == float(1 << 24)

@@ -9,7 +9,7 @@ with the full dotted key (e.g. ``encoding.position.n_levels must be >= 1, got 0`
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from nrc.errors import ConfigError
@@ -45,9 +45,6 @@ class ConfigReader:
         """The dotted name of ``name`` inside this block."""
         return f"{self._path}.{name}" if self._path else name
 
-    def has(self, name: str) -> bool:
-        return name in self._cfg and self._cfg[name] is not None
-
     def _get(self, name: str) -> Any:
         """The value of ``name`` (``None`` when absent or null), marking the key as known."""
         self._used.add(name)
@@ -58,7 +55,7 @@ class ConfigReader:
             raise ConfigError(f"{self.key(name)} is required")
         return default
 
-    def int(self, name: str, default: Any = _REQUIRED, lo: int | None = None, hi: int | None = None) -> int:
+    def get_int(self, name: str, default: Any = _REQUIRED, lo: int | None = None, hi: int | None = None) -> int:
         value = self._get(name)
         if value is None:
             return self._missing(name, default)
@@ -70,7 +67,7 @@ class ConfigReader:
         self._check_range(name, value, lo, hi)
         return value
 
-    def float(self, name: str, default: Any = _REQUIRED, lo: float | None = None, hi: float | None = None,
+    def get_float(self, name: str, default: Any = _REQUIRED, lo: float | None = None, hi: float | None = None,
               lo_open: bool = False, hi_open: bool = False) -> float:
         value = self._get(name)
         if value is None:
@@ -84,7 +81,7 @@ class ConfigReader:
             raise ConfigError(f"{self.key(name)} must be {'<' if hi_open else '<='} {hi}, got {value}")
         return value
 
-    def bool(self, name: str, default: Any = _REQUIRED) -> bool:
+    def get_bool(self, name: str, default: Any = _REQUIRED) -> bool:
         value = self._get(name)
         if value is None:
             return self._missing(name, default)
@@ -92,7 +89,7 @@ class ConfigReader:
             raise ConfigError(f"{self.key(name)} must be true or false, got {value!r}")
         return value
 
-    def choice(self, name: str, choices: Mapping[str, Any] | tuple[str, ...], default: Any = _REQUIRED) -> str:
+    def get_choice(self, name: str, choices: Sequence[str], default: Any = _REQUIRED) -> str:
         """A string matched case-insensitively against ``choices``; returns the canonical spelling."""
         value = self._get(name)
         if value is None:

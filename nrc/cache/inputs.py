@@ -49,8 +49,8 @@ class ExtraInputs:
     @classmethod
     def from_config(cls, cfg: ConfigReader) -> ExtraInputs:
         extras = cls(
-            density=cfg.bool("density", False), gradient=cfg.bool("gradient", False),
-            laplacian=cfg.bool("laplacian", False),
+            density=cfg.get_bool("density", False), gradient=cfg.get_bool("gradient", False),
+            laplacian=cfg.get_bool("laplacian", False),
         )
         cfg.finish()
         return extras

@@ -160,7 +160,7 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
     enc_cfg = ConfigReader(encoding_cfg, "encoding")
     pos_cfg, dir_cfg = enc_cfg.block("position"), enc_cfg.block("direction")
     enc_cfg.finish()
-    direction_mode = "spherical" if dir_cfg.choice("otype", DIRECTION_OTYPES) == "OneBlob" else "vector"
+    direction_mode = "spherical" if dir_cfg.get_choice("otype", DIRECTION_OTYPES) == "OneBlob" else "vector"
     inputs = InputBuilder(grid, direction_mode, extras)
     (pos_dims, pos_periodic), (dir_dims, dir_periodic) = inputs.column_blocks[:2]
     generator = torch.Generator().manual_seed(int(seed))

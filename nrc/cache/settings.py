@@ -39,19 +39,19 @@ class CacheSettings:
         ema = cfg.block("ema")
         loss = cfg.block("loss")
         settings = cls(
-            n_neurons=net.int("n_neurons", lo=16, hi=1024),
-            n_hidden_layers=net.int("n_hidden_layers", lo=1, hi=16),
-            bf16=net.bool("bf16", False),
+            n_neurons=net.get_int("n_neurons", lo=16, hi=1024),
+            n_hidden_layers=net.get_int("n_hidden_layers", lo=1, hi=16),
+            bf16=net.get_bool("bf16", False),
             mlp_adam=AdamSettings(
-                lr=opt.float("lr", lo=0.0, lo_open=True),
-                eps=opt.float("eps", lo=0.0),
-                weight_decay=opt.float("weight_decay", 0.0, lo=0.0),
+                lr=opt.get_float("lr", lo=0.0, lo_open=True),
+                eps=opt.get_float("eps", lo=0.0),
+                weight_decay=opt.get_float("weight_decay", 0.0, lo=0.0),
             ),
-            betas=(opt.float("beta1", 0.9, lo=0.0, hi=1.0, hi_open=True),
-                   opt.float("beta2", 0.99, lo=0.0, hi=1.0, hi_open=True)),
-            ema_alpha=ema.float("alpha", lo=0.0, hi=1.0, hi_open=True),
-            target_clamp=loss.float("target_clamp", lo=0.0, lo_open=True),
-            query_chunk=cfg.int("query_chunk", 1 << 16, lo=1),
+            betas=(opt.get_float("beta1", 0.9, lo=0.0, hi=1.0, hi_open=True),
+                   opt.get_float("beta2", 0.99, lo=0.0, hi=1.0, hi_open=True)),
+            ema_alpha=ema.get_float("alpha", lo=0.0, hi=1.0, hi_open=True),
+            target_clamp=loss.get_float("target_clamp", lo=0.0, lo_open=True),
+            query_chunk=cfg.get_int("query_chunk", 1 << 16, lo=1),
         )
         for block in (net, opt, ema, loss, cfg):
             block.finish()

@@ -9,7 +9,8 @@ Keys per ``otype`` (case-insensitive; unknown keys are errors):
   dimensions (the direction's azimuth) by the caller.
 * ``HashGrid``: ``n_levels`` (>= 1), ``n_features_per_level`` (>= 1), ``log2_hashmap_size`` (1..24),
   ``base_resolution`` (>= 1), and exactly one of ``per_level_scale`` (>= 1) or ``max_resolution``
-  (>= ``base_resolution``; then ``b = (N_max / N_min)^(1 / (L - 1))``); optimiser keys ``lr``
+  (>= ``base_resolution``; then ``b = (N_max / N_min)^(1 / (L - 1))``), with the finest resolution
+  at most 2^20; optimiser keys ``lr``
   (default 1e-2) and ``eps`` (default 1e-15).
 """
 
@@ -30,6 +31,8 @@ from nrc.cache.optim import AdamSettings
 from nrc.errors import ConfigError
 
 OTYPES = ("Identity", "Frequency", "TriangleWave", "OneBlob", "HashGrid")
+MAX_RESOLUTION = 1 << 20
+"""Finest hash-grid resolution accepted: beyond it float32 positions cannot resolve the cells."""
 
 
 def build_encoding(
@@ -52,16 +55,16 @@ def build_encoding(
         ``(module, adam)``: the encoding (with ``out_dim``) and, for trainable encodings, the Adam
         settings of its parameter group (``None`` otherwise).
     """
-    otype = cfg.choice("otype", tuple(allowed))
+    otype = cfg.get_choice("otype", tuple(allowed))
     adam = None
     if otype == "Identity":
         module: nn.Module = IdentityEncoding(n_dims)
     elif otype == "Frequency":
-        module = FrequencyEncoding(n_dims, cfg.int("n_frequencies", lo=1, hi=24))
+        module = FrequencyEncoding(n_dims, cfg.get_int("n_frequencies", lo=1, hi=24))
     elif otype == "TriangleWave":
-        module = TriangleWaveEncoding(n_dims, cfg.int("n_frequencies", lo=1, hi=24))
+        module = TriangleWaveEncoding(n_dims, cfg.get_int("n_frequencies", lo=1, hi=24))
     elif otype == "OneBlob":
-        module = OneBlobEncoding(n_dims, cfg.int("n_bins", lo=1), wrap=periodic)
+        module = OneBlobEncoding(n_dims, cfg.get_int("n_bins", lo=1), wrap=periodic)
     else:
         module, adam = _build_hashgrid(cfg, n_dims, generator)
     cfg.finish()
@@ -71,20 +74,20 @@ def build_encoding(
 def _build_hashgrid(cfg: ConfigReader, n_dims: int, generator: torch.Generator) -> tuple[nn.Module, AdamSettings]:
     if n_dims != 3:
         raise ConfigError(f"{cfg.key('otype')}: HashGrid encodes 3-D positions, not {n_dims}-D inputs")
-    n_levels = cfg.int("n_levels", lo=1)
-    n_features = cfg.int("n_features_per_level", lo=1)
-    log2_t = cfg.int("log2_hashmap_size", lo=1, hi=24)
+    n_levels = cfg.get_int("n_levels", lo=1)
+    n_features = cfg.get_int("n_features_per_level", lo=1)
+    log2_t = cfg.get_int("log2_hashmap_size", lo=1, hi=24)
     if n_levels << log2_t >= 2**31:
         raise ConfigError(f"{cfg.key('n_levels')} x 2^log2_hashmap_size must be < 2^31 (int32 rows)")
-    base = cfg.int("base_resolution", lo=1)
-    if cfg.has("per_level_scale") == cfg.has("max_resolution"):
+    base = cfg.get_int("base_resolution", lo=1)
+    scale = cfg.get_float("per_level_scale", None, lo=1.0)
+    n_max = cfg.get_int("max_resolution", None, lo=base)
+    if (scale is None) == (n_max is None):
         raise ConfigError(f"{cfg.key('per_level_scale')}: give exactly one of per_level_scale and max_resolution")
-    if cfg.has("per_level_scale"):
-        scale = cfg.float("per_level_scale", lo=1.0)
-        cfg.int("max_resolution", None)
-    else:
-        n_max = cfg.int("max_resolution", lo=base)
-        cfg.float("per_level_scale", None)
+    if scale is None:
         scale = (n_max / base) ** (1.0 / (n_levels - 1)) if n_levels > 1 else 1.0
-    adam = AdamSettings(lr=cfg.float("lr", 1e-2, lo=0.0, lo_open=True), eps=cfg.float("eps", 1e-15, lo=0.0))
+    if base * scale ** (n_levels - 1) > MAX_RESOLUTION:
+        raise ConfigError(f"{cfg.key('per_level_scale')}: the finest resolution N_min b^(L-1) = "
+                          f"{base * scale ** (n_levels - 1):.4g} exceeds {MAX_RESOLUTION} (float32 positions)")
+    adam = AdamSettings(lr=cfg.get_float("lr", 1e-2, lo=0.0, lo_open=True), eps=cfg.get_float("eps", 1e-15, lo=0.0))
     return HashGridEncoding(n_levels, n_features, log2_t, base, scale, generator=generator), adam
