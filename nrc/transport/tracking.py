@@ -418,7 +418,9 @@ def track(
                 fin = u[:, 1] * rate < sigma
                 R[:, _RES] = torch.where(fin, tc, R[:, _RES])
             elif kind == RATIO:
-                w = R[:, _PROD] * (1.0 - sigma / rate)
+                # sigma may exceed the majorant by rounding only (beyond MAJORANT_RTOL it raises below): such a
+                # null-collision probability is 0, not a tiny negative number
+                w = R[:, _PROD] * (1.0 - sigma / rate).clamp(min=0.0)
                 if thr > 0:
                     w = torch.where(w < thr, (u[:, 1] < w).to(w.dtype), w)
                 R[:, _PROD] = w
@@ -426,7 +428,7 @@ def track(
             else:
                 ctrl = R[:, _CTRL]
                 tauc = R[:, _TAUC] + ctrl * (tc - t)
-                prod = R[:, _PROD] * (1.0 - (sigma - ctrl) / rate)
+                prod = R[:, _PROD] * (1.0 - (sigma - ctrl) / rate).clamp(min=0.0)  # (rounding, as above)
                 w = torch.exp(-tauc) * prod
                 if thr > 0:
                     small = w < thr
