@@ -45,8 +45,6 @@ DEFAULT_MODE = "brick"  # faster on both the dense and the sparse cloud (docs/tr
 
 # Relative tolerance of the majorant check (trilinear interpolation and the density scale round by a few ulp).
 MAJORANT_RTOL = 1e-5
-# Tables of brick segments are built for at most this many elements (rays x segments) at once.
-TABLE_BUDGET = 1 << 24
 
 
 class MajorantError(RuntimeError):
@@ -111,79 +109,8 @@ def clip_segments(
     return o, torch.where(empty, zero, near), torch.where(empty, zero, far)
 
 
-def brick_segments(
-    majorants: MajorantGrid, origin: Tensor, direction: Tensor, a: Tensor, b: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Cut ray segments ``[a, b]`` (inside the box) at the brick planes.
-
-    A vectorised DDA: the crossings of every interior brick plane are computed per axis, clipped to
-    ``[a, b]`` and sorted, so each ray gets ``K = 1 + sum(bricks per axis - 1)`` consecutive pieces (unused
-    pieces have zero length at ``b``). The brick of a piece is the one holding its midpoint.
-
-    Returns:
-        ``(t_lo, t_hi, majorant, minorant)``, each ``(N, K)``: piece bounds and the bounds of ``sigma_t``
-        valid on each piece.
-    """
-    box_lo = majorants.grid.box.lo
-    size = majorants.brick_size
-    nb = majorants.shape
-    dev = origin.device
-    cols = [a[:, None]]
-    for ax in range(3):
-        if nb[ax] <= 1:
-            continue
-        planes = box_lo[ax] + size * torch.arange(1, nb[ax], device=dev, dtype=torch.float32)
-        dax = direction[:, ax : ax + 1]
-        zero = dax == 0
-        tc = (planes[None, :] - origin[:, ax : ax + 1]) / torch.where(zero, torch.ones_like(dax), dax)
-        cols.append(torch.where(zero, b[:, None], tc))
-    cols.append(b[:, None])
-    t = torch.cat(cols, dim=1)
-    t = torch.minimum(torch.maximum(t, a[:, None]), b[:, None])
-    if t.shape[1] > 2:
-        t = t.sort(dim=1).values
-    t_lo, t_hi = t[:, :-1], t[:, 1:]
-    mid = 0.5 * (t_lo + t_hi)
-    x = origin[:, None, :] + mid[..., None] * direction[:, None, :]
-    cell = ((x - box_lo) / size).floor()  # float: exact for any realistic brick count, half the memory
-    hi = torch.tensor(nb, device=dev, dtype=torch.float32) - 1
-    cell = torch.minimum(cell.clamp(min=0), hi)
-    flat = ((cell[..., 0] * nb[1] + cell[..., 1]) * nb[2] + cell[..., 2]).long()
-    maj = majorants.majorant.reshape(-1)[flat]
-    mnr = majorants.minorant.reshape(-1)[flat]
-    return t_lo, t_hi, maj, mnr
-
-
-def _chunks(n: int, per_ray: int, budget: int = TABLE_BUDGET) -> list[tuple[int, int]]:
-    size = max(1024, budget // max(1, per_ray))
-    return [(s, min(n, s + size)) for s in range(0, n, size)]
-
-
-def num_segments(majorants: MajorantGrid) -> int:
-    """Pieces per ray in :func:`brick_segments`."""
-    return 1 + sum(n - 1 for n in majorants.shape)
-
-
-def optical_depth_bounds(
-    majorants: MajorantGrid, origin: Tensor, direction: Tensor, a: Tensor, b: Tensor
-) -> tuple[Tensor, Tensor]:
-    """``(tau_major, tau_minor)`` ``(N,)``: the brick majorant and minorant integrated over ``[a, b]``.
-
-    Same values as :meth:`MajorantGrid.integrate_bounds` (checked in the tests), computed without a loop over
-    DDA steps (chunked over rays to bound memory).
-    """
-    tau_major = torch.zeros_like(a)
-    tau_minor = torch.zeros_like(a)
-    for s, e in _chunks(a.shape[0], 12 * num_segments(majorants)):
-        t_lo, t_hi, maj, mnr = brick_segments(majorants, origin[s:e], direction[s:e], a[s:e], b[s:e])
-        length = t_hi - t_lo
-        tau_major[s:e] = (length * maj).sum(dim=1)
-        tau_minor[s:e] = (length * mnr).sum(dim=1)
-    return tau_major, tau_minor
-
-
 # ---------------------------------------------------------------------------------------------- core loop
-DELTA, RATIO, RESIDUAL = "delta", "ratio", "residual"
+DELTA, RATIO, RESIDUAL, BOUNDS = "delta", "ratio", "residual", "bounds"
 
 # Columns of the per-ray walk state (one float32 row per ray, so compaction is a single index_select).
 _T, _TAU, _RATE, _CTRL, _TAUC, _PROD, _B = 0, 1, 2, 3, 4, 5, 6
@@ -237,8 +164,11 @@ class _Walk:
         if self.brick:
             maj = majorants.majorant.reshape(-1).to(torch.float32)
             mnr = majorants.minorant.reshape(-1).to(torch.float32)
+            self.min_grid = None
             if kind == RESIDUAL:
                 self.rate_grid, self.ctrl_grid = 0.5 * (maj - mnr), 0.5 * (maj + mnr)
+            elif kind == BOUNDS:  # no collisions; integrate the majorant (as "control") and the minorant
+                self.rate_grid, self.ctrl_grid, self.min_grid = torch.zeros_like(maj), maj, mnr
             else:
                 self.rate_grid, self.ctrl_grid = maj, None
             nb = majorants.shape
@@ -258,6 +188,8 @@ class _Walk:
         S[:, _SKIP] = self.skip_grid[flat]
         if self.ctrl_grid is not None:
             S[:, _CTRL] = self.ctrl_grid[flat]
+        if self.min_grid is not None:
+            S[:, _RES] = self.min_grid[flat]
 
     def init_state(self, o: Tensor, d: Tensor, a: Tensor, b: Tensor, tau: Tensor) -> Tensor:
         n = o.shape[0]
@@ -294,13 +226,14 @@ class _Walk:
         t_exit = torch.minimum(S[:, _TN].amin(dim=1), S[:, _B])
         return S[:, _TAU] >= S[:, _RATE] * (t_exit - S[:, _T])
 
-    def advance(self, S: Tensor, sub: Tensor) -> None:
+    def advance(self, S: Tensor, sub: Tensor | None) -> None:
         """Move the rays ``sub`` (row indices of ``S``, in place) across one brick: their exponential sample
         reaches past the current brick, so they consume its majorant optical depth and step to the next brick
         (or to their segment end, ``t = b``). A zero-majorant brick is crossed in this one step, and so is the
         whole empty cube of radius ``r`` around it (:func:`skip_radius`): the ray exits the cube through the
-        ``r``-th plane of some axis and every axis advances by the number of its planes crossed on the way."""
-        R = S.index_select(0, sub)
+        ``r``-th plane of some axis and every axis advances by the number of its planes crossed on the way.
+        ``sub=None`` moves every row (in place, no gather)."""
+        R = S if sub is None else S.index_select(0, sub)
         t = R[:, _T]
         b = R[:, _B]
         tn = R[:, _TN]
@@ -315,6 +248,9 @@ class _Walk:
         R[:, _TAU].sub_(R[:, _RATE] * dt).clamp_(min=0.0)
         if self.kind == RESIDUAL:
             R[:, _TAUC].add_(R[:, _CTRL] * dt)
+        elif self.kind == BOUNDS:
+            R[:, _TAUC].add_(R[:, _CTRL] * dt)
+            R[:, _PROD].add_(R[:, _RES] * dt)
         R[:, _T] = t_exit
         if self.brick:
             # planes crossed per axis up to t_exit (>= 1 on the exit axis; exact ties cross together)
@@ -322,7 +258,34 @@ class _Walk:
             R[:, _TN_CELL] += count.repeat(1, 2) * R[:, _TD_STEP]
             R[:, _CELL] = torch.clamp(R[:, _CELL], min=self.zero3, max=self.hi)
             self._brick_params(R)
-        S.index_copy_(0, sub, R)
+        if sub is not None:
+            S.index_copy_(0, sub, R)
+
+
+def optical_depth_bounds(
+    majorants: MajorantGrid, origin: Tensor, direction: Tensor, a: Tensor, b: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``(tau_major, tau_minor)`` ``(N,)``: the brick majorant and minorant integrated over ``[a, b]`` (inside the
+    box). Same values as :meth:`MajorantGrid.integrate_bounds` (checked in the tests), computed by the brick walk
+    of this module (compacted, with empty-space jumps)."""
+    tau_major = torch.zeros_like(a)
+    tau_minor = torch.zeros_like(a)
+    idx = torch.nonzero(b > a).squeeze(1)
+    if idx.numel() == 0 or not majorants.global_majorant > 0:
+        return tau_major, tau_minor
+    walk = _Walk(majorants.grid, majorants, BOUNDS, "brick")
+    S = walk.init_state(origin[idx], direction[idx], a[idx], b[idx], torch.zeros(idx.numel(), device=a.device))
+    S[:, _PROD] = 0.0
+    while S.shape[0]:
+        walk.advance(S, None)
+        fin = S[:, _T] >= S[:, _B]
+        if bool(fin.any()):
+            f = torch.nonzero(fin).squeeze(1)
+            tau_major[idx[f]] = S[f, _TAUC]
+            tau_minor[idx[f]] = S[f, _PROD]
+            keep = torch.nonzero(~fin).squeeze(1)
+            S, idx = S.index_select(0, keep), idx[keep]
+    return tau_major, tau_minor
 
 
 def track(
@@ -400,14 +363,15 @@ def track(
         rd = torch.nonzero(~need).squeeze(1)
         nmv, nrd = int(mv.numel()), int(rd.numel())
         done = torch.zeros(S.shape[0], dtype=torch.bool, device=dev)
+        m = S.shape[0]
         if nmv:
             advances += nmv
-            walk.advance(S, mv)
+            walk.advance(S, None if nmv == m else mv)
             done[mv] = S[mv, _T] >= S[mv, _B]
         if nrd:
             st.lookups += nrd
             st.collisions += nrd
-            R = S.index_select(0, rd)
+            R = S if nrd == m else S.index_select(0, rd)  # (a view when every ray collides: updated in place)
             u = torch.rand((nrd, 3), generator=gen, device=dev)
             t, rate = R[:, _T], R[:, _RATE]  # rate > 0: the sample fell short of the brick end
             tc = t + R[:, _TAU] / rate
@@ -440,7 +404,8 @@ def track(
                 fin = w == 0
             R[:, _T] = tc
             R[:, _TAU] = -torch.log1p(-u[:, 0])
-            S.index_copy_(0, rd, R)
+            if nrd != m:
+                S.index_copy_(0, rd, R)
             done[rd] = fin
             nbad = int(bad.sum())
             if nbad:

@@ -163,6 +163,7 @@ def estimate(
     p_z: float = 0.9,
     k: int = 2,
     c: float = 2.0,
+    tau_c_scale: float = 1.0,
     chunk_lookups: int = 1 << 20,
     return_stats: bool = False,
 ) -> Tensor | tuple[Tensor, TrackingStats]:
@@ -173,6 +174,8 @@ def estimate(
         max_m: cap on the comb size (only reached for ``tau_c > ~1150``; the estimate stays unbiased up to the
             truncation, but its variance grows).
         p_z, k, c: the Bhanot–Kennedy roulette.
+        tau_c_scale: multiplier on the control optical thickness before the tuple-size formula (1 = as
+            specified; larger values buy lower variance with more lookups, see docs/transmittance.md).
         chunk_lookups: lookups evaluated per ``sigma_t`` call.
         return_stats: also return :class:`~nrc.transport.tracking.TrackingStats` (``lookups = collisions =
             sum (N+1) M``).
@@ -192,7 +195,7 @@ def estimate(
         tau_major, tau_minor = optical_depth_bounds(majorants, o, d, a, b)
         probs = roulette_probabilities(max_order, p_z, k, c)
         order = sample_order(torch.rand(todo.numel(), generator=gen, device=o.device), probs)
-        m = tuple_size(tau_major - tau_minor, max_m)
+        m = tuple_size(float(tau_c_scale) * (tau_major - tau_minor), max_m)
         opaque = tau_minor > OPAQUE_TAU
         march = (tau_major > 0) & ~opaque
         Tt = torch.where(opaque, torch.zeros_like(a), torch.ones_like(a))
