@@ -43,8 +43,10 @@ if TYPE_CHECKING:  # pragma: no cover
 MODES = ("global", "brick")
 DEFAULT_MODE = "brick"  # faster on both the dense and the sparse cloud (docs/transmittance.md)
 
-# Relative tolerance of the majorant check (trilinear interpolation and the density scale round by a few ulp).
-MAJORANT_RTOL = 1e-5
+# Tolerances of the majorant check. Brick bounds are tight (no dilation), so a point rounded onto a brick face
+# may pick up a hair of the neighbouring brick's density: relative 1e-3 plus 1e-4 of the global majorant.
+MAJORANT_RTOL = 1e-3
+MAJORANT_ATOL = 1e-4
 
 
 class MajorantError(RuntimeError):
@@ -176,14 +178,15 @@ class _Walk:
             self.nb = nb
             self.hi = torch.tensor(nb, dtype=torch.float32, device=dev) - 1
             self.zero3 = torch.zeros(3, dtype=torch.float32, device=dev)
-            self.strides = torch.tensor([nb[1] * nb[2], nb[2], 1], dtype=torch.float32, device=dev)
+            self.strides = torch.tensor([nb[1] * nb[2], nb[2], 1], dtype=torch.long, device=dev)
             self.size = float(majorants.brick_size)
-            self.lo = majorants.grid.box.lo.to(torch.float32)
+            # low corner of brick (0, 0, 0) (the brick lattice need not start at the box corner)
+            self.lo = getattr(majorants, "origin", majorants.grid.box.lo).to(torch.float32)
             self.skip_grid = skip_radius(majorants).reshape(-1)
 
     def _brick_params(self, S: Tensor) -> None:
         """Set the rate (and control) columns from the brick coordinates."""
-        flat = (S[:, _CELL] * self.strides).sum(dim=1).long()
+        flat = (S[:, _CELL].long() * self.strides).sum(dim=1)
         S[:, _RATE] = self.rate_grid[flat]
         S[:, _SKIP] = self.skip_grid[flat]
         if self.ctrl_grid is not None:
@@ -337,6 +340,7 @@ def track(
     tau0 = -torch.log1p(-torch.rand(idx.numel(), generator=gen, device=dev))
     S = walk.init_state(origin[idx], direction[idx], a[idx], b[idx], tau0)
     lim_scale = 1.0 + MAJORANT_RTOL
+    lim_abs = MAJORANT_ATOL * majorants.global_majorant
 
     def retire(S: Tensor, idx: Tensor, done: Tensor) -> tuple[Tensor, Tensor]:
         fin = torch.nonzero(done).squeeze(1)
@@ -377,7 +381,7 @@ def track(
             tc = t + R[:, _TAU] / rate
             sigma = grid.sigma_t(R[:, _O] + tc[:, None] * R[:, _D])
             maj = rate + R[:, _CTRL] if kind == RESIDUAL else rate
-            bad = sigma > maj * lim_scale
+            bad = sigma > maj * lim_scale + lim_abs
             if kind == DELTA:
                 fin = u[:, 1] * rate < sigma
                 R[:, _RES] = torch.where(fin, tc, R[:, _RES])
