@@ -1,6 +1,6 @@
 """Throughput of the radiance cache: inference and training points/s per encoding and MLP shape.
 
-Measures, at 2^16 points per call (warm-up calls excluded, median of ``--reps`` timed calls):
+Measures, at 2^16 points per call (one warm-up call excluded, best of ``--reps`` timed calls):
 
 * inference: ``RadianceCache.query`` (EMA weights, no autograd);
 * training: ``RadianceCache.train_step`` (forward, backward, fused Adam step, EMA update);
@@ -11,7 +11,7 @@ with one-blob (4 bins) on the direction, times MLP width {64, 128} x hidden laye
 the hash-grid encoding alone (forward + backward) for L = 8, 12, 16. Results go to stdout and to the
 ``## Radiance cache throughput`` section of ``docs/benchmarks.md``.
 
-    python scripts/bench_cache.py            # full table (~5 min on 2 cores)
+    python scripts/bench_cache.py            # full table (~4 min on 2 cores)
     python scripts/bench_cache.py --quick    # width 64, depths 3 and 6, one timed call each
 """
 
@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import sys
 import time
 from collections.abc import Callable
@@ -56,7 +55,8 @@ ENCODINGS = {
 }
 
 
-def _median_seconds(fn: Callable[[], object], reps: int, warmup: int = 1) -> float:
+def _best_seconds(fn: Callable[[], object], reps: int, warmup: int = 1) -> float:
+    """Shortest of ``reps`` timed calls after ``warmup`` untimed ones (the least disturbed by other load)."""
     for _ in range(warmup):
         fn()
     times = []
@@ -64,7 +64,7 @@ def _median_seconds(fn: Callable[[], object], reps: int, warmup: int = 1) -> flo
         start = time.perf_counter()
         fn()
         times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return min(times)
 
 
 def _inputs(grid: DensityGrid, device: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -95,7 +95,7 @@ def bench_cache(position: dict, width: int, depth: int, grid: DensityGrid, devic
         cache.train_step(x, d, t)
         _sync(device)
 
-    return N_POINTS / _median_seconds(infer, reps), N_POINTS / _median_seconds(train, reps)
+    return N_POINTS / _best_seconds(infer, reps), N_POINTS / _best_seconds(train, reps)
 
 
 def bench_hashgrid(levels: int, device: str, reps: int) -> float:
@@ -108,7 +108,7 @@ def bench_hashgrid(levels: int, device: str, reps: int) -> float:
         enc(x).sum().backward()
         _sync(device)
 
-    return N_POINTS / _median_seconds(step, reps)
+    return N_POINTS / _best_seconds(step, reps)
 
 
 def _fmt(points_per_s: float) -> str:
@@ -125,11 +125,12 @@ def _machine(device: str) -> str:
     except OSError:
         pass
     gpu = f", GPU {torch.cuda.get_device_name()}" if device.startswith("cuda") else ""
-    return (f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__} ({torch.get_num_threads()} threads){gpu}, "
+    return (f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__} (intra-op threads: "
+            f"{torch.get_num_threads()}){gpu}, "
             f"Python {platform.python_version()}")
 
 
-def run(widths: list[int], depths: list[int], reps: int, device: str) -> str:
+def run(widths: list[int], depths: list[int], reps: int, device: str, command: str) -> str:
     grid = DensityGrid(torch.rand(32, 32, 32, generator=torch.Generator().manual_seed(0)), center=(0, 0, 0),
                        diagonal=2.0, density_scale=1.0, device=device)
     load_before = os.getloadavg()[0]
@@ -153,15 +154,17 @@ def run(widths: list[int], depths: list[int], reps: int, device: str) -> str:
     lines = [
         SECTION,
         "",
-        f"Machine: {_machine(device)}; device `{device}`. Command: `python scripts/bench_cache.py"
-        f"{' --quick' if reps == 1 else ''}` (median of {reps} timed call(s) after one warm-up call; "
-        f"{elapsed:.0f} s in total; 1-minute load average {load_before:.1f} before, {load_after:.1f} after "
-        "(other processes on the machine slow every number down).",
+        f"Machine: {_machine(device)}; device `{device}`. Command: `{command}` (best of {reps} timed "
+        f"call(s) after one warm-up call; {elapsed:.0f} s in total; 1-minute load average {load_before:.1f} "
+        f"before, {load_after:.1f} after: other processes on the machine slow the numbers down).",
         "",
         f"Thousands of points per second at 2^16 points per call. Columns: MLP width x hidden layers. "
         "Position encodings: T = triangle wave, F = frequency (sin, cos), n = frequencies; HG = hash grid, "
         "n = levels, F = 2, T = 2^19, N_min = 16, per-level scale 2. Direction: one-blob, 4 bins (OB4), "
-        "on the spherical angles. No extra inputs.",
+        "on the spherical angles. No extra inputs. On a machine shared with other jobs repeated runs differ "
+        "by up to ~25 %: read the trends (width, depth, levels), not single cells. With 2 intra-op threads "
+        "while other jobs keep a core busy, every parallel op waits for that core, so `--threads 1` gives "
+        "the more faithful numbers then.",
         "",
         "**Inference** (`RadianceCache.query`: EMA weights, no autograd)",
         "",
@@ -202,14 +205,18 @@ def write_section(section: str, path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="width 64, depths 3 and 6, one timed call")
-    parser.add_argument("--reps", type=int, default=3, help="timed calls per configuration (full run)")
+    parser.add_argument("--reps", type=int, default=5, help="timed calls per configuration (full run)")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     args = parser.parse_args()
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     if args.device == "cpu":
         retain_freed_memory()
     widths, depths, reps = ([64], [3, 6], 1) if args.quick else ([64, 128], [3, 4, 5, 6], args.reps)
-    section = run(widths, depths, reps, args.device)
+    command = " ".join(["python scripts/bench_cache.py", *sys.argv[1:]])
+    section = run(widths, depths, reps, args.device, command)
     if not args.no_write:
         write_section(section, REPO / "docs" / "benchmarks.md")
     print("\n" + section)
