@@ -10,6 +10,15 @@ from scipy import stats
 from nrc.transport.phase import hg_pdf, hg_sample, hg_sample_cos, orthonormal_basis
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    """These tests run many small batched ops: one intra-op thread is as fast and immune to a busy core."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def hg_cdf_one_minus_mu(g: float, x: np.ndarray) -> np.ndarray:
     """P(1 - mu <= x) for HG with g >= 0, in float64 (x = 1 - mu in [0, 2])."""
     if g == 0.0:

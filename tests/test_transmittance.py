@@ -23,6 +23,15 @@ from nrc.volume.majorant import MajorantGrid
 CONF = Path(__file__).resolve().parent.parent / "conf" / "transmittance"
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    """These tests run many small batched ops: one intra-op thread is as fast and immune to a busy core."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def unit(v):
     v = torch.as_tensor(v, dtype=torch.float32)
     return v / v.norm(dim=-1, keepdim=True)
