@@ -10,6 +10,7 @@ from nrc.errors import ConfigError
 # name -> "module:class"; imported on demand so that start-up loads only the renderer in use.
 RENDERERS: dict[str, str] = {
     "preview": "nrc.render.preview:PreviewRenderer",
+    "pt": "nrc.render.pt:PathTracer",
 }
 
 

@@ -1,10 +1,17 @@
 """Brick majorant grid and its batched ray traversal (3-D DDA) for empty-space skipping.
 
-The density box is split into bricks of ``brick`` x ``brick`` x ``brick`` cells (the last brick along an
-axis may extend past the box; rays are clipped to the box first). For each brick the grid stores the
-maximum and minimum of ``sigma_t = density_scale * D`` over every cell whose value can enter a trilinear
-lookup inside the brick: the brick's own cells dilated by one cell on every side. Hence for any point
-``x`` in brick ``b``: ``minorant[b] <= sigma_t(x) <= majorant[b]``.
+Bricks live on the lattice of cell *centres* (the lattice trilinear interpolation works on): in continuous
+cell coordinates ``u`` (cell ``i`` spans ``[i, i + 1]``, its centre is ``i + 0.5``) brick ``b`` spans
+``u in [0.5 + (b - 1) B, 0.5 + b B]`` along each axis, so brick 0 also holds the half-cell clamp zone at
+the low face and the last brick the one at the high face (the outer bricks extend past the box; rays are
+clipped to the box first). A trilinear lookup inside brick ``b`` only blends the ``B + 1`` centres
+``(b - 1) B .. b B`` (clamped to the grid), so the per-brick maximum and minimum of ``sigma_t =
+density_scale * D`` over exactly those centres bound every lookup in the brick without dilation:
+``minorant[b] <= sigma_t(x) <= majorant[b]``. Being exact for ``B = 1`` (one interpolation cell per brick),
+the bounds stay tight near dense voxels, where a cell-aligned brick would have to be dilated.
+
+``brick = 0`` makes a single brick covering the whole box with the global maximum and minimum (the
+"global majorant" of delta tracking, through the same traversal code).
 
 The grid is built from a :class:`~nrc.volume.grid.DensityGrid` and is tied to its ``density_scale``:
 build a new one when the scale changes.
@@ -22,16 +29,14 @@ from nrc.volume.grid import DensityGrid
 
 
 def _brick_reduce(sigma: Tensor, brick: int, reduce_max: bool) -> Tensor:
-    """Per-brick max (or min) of ``sigma`` over each brick dilated by one cell (edge cells replicated)."""
+    """Per-brick max (or min) of ``sigma`` over the centres ``(b - 1) B .. b B`` of each brick (clamped)."""
     n = sigma.shape
-    nb = [math.ceil(s / brick) for s in n]
-    x = sigma[None, None]
-    x = F.pad(x, (1, 1, 1, 1, 1, 1), mode="replicate")
-    extra = [nb[a] * brick + 2 - (n[a] + 2) for a in range(3)]
-    x = F.pad(x, (0, extra[2], 0, extra[1], 0, extra[0]), mode="replicate")
+    nb = [math.ceil((s - 0.5) / brick) + 1 for s in n]
+    back = [nb[a] * brick + 1 - brick - n[a] for a in range(3)]
+    x = F.pad(sigma[None, None], (brick, back[2], brick, back[1], brick, back[0]), mode="replicate")
     if not reduce_max:
         x = -x
-    out = F.max_pool3d(x, kernel_size=brick + 2, stride=brick)[0, 0]
+    out = F.max_pool3d(x, kernel_size=brick + 1, stride=brick)[0, 0]
     return out if reduce_max else -out
 
 
@@ -39,28 +44,48 @@ class MajorantGrid:
     """Per-brick bounds of ``sigma_t`` for a density grid.
 
     Attributes:
-        brick: bricks are ``brick`` cells wide along each axis.
+        brick: bricks are ``brick`` cells wide along each axis (0: one brick for the whole box).
         brick_size: brick edge length in world units.
-        majorant: ``(bx, by, bz)`` per-brick maximum of ``sigma_t`` (dilated by one cell).
-        minorant: ``(bx, by, bz)`` per-brick minimum of ``sigma_t`` (dilated by one cell).
+        origin: ``(3,)`` world position of the low corner of brick ``(0, 0, 0)``.
+        majorant: ``(bx, by, bz)`` per-brick maximum of ``sigma_t``.
+        minorant: ``(bx, by, bz)`` per-brick minimum of ``sigma_t``.
         global_majorant: maximum of ``sigma_t`` over the whole grid (a float).
     """
 
     def __init__(self, grid: DensityGrid, brick: int = 8) -> None:
-        if brick < 1:
-            raise ValueError(f"brick size must be >= 1, got {brick}")
+        if brick < 0:
+            raise ValueError(f"brick size must be >= 0, got {brick}")
         self.grid = grid
         self.brick = int(brick)
-        self.brick_size = grid.voxel_size * self.brick
         sigma = grid.density * grid.density_scale
-        self.majorant = _brick_reduce(sigma, self.brick, True).contiguous()
-        self.minorant = _brick_reduce(sigma, self.brick, False).contiguous()
+        if self.brick == 0:
+            self.brick_size = float(grid.box.extent.max())
+            self.origin = grid.box.lo.clone()
+            self.majorant = sigma.max().reshape(1, 1, 1)
+            self.minorant = sigma.min().reshape(1, 1, 1)
+        else:
+            self.brick_size = grid.voxel_size * self.brick
+            self.origin = grid.box.lo + (0.5 - self.brick) * grid.voxel_size
+            self.majorant = _brick_reduce(sigma, self.brick, True).contiguous()
+            self.minorant = _brick_reduce(sigma, self.brick, False).contiguous()
         self.global_majorant = float(sigma.max())
         self.shape = tuple(self.majorant.shape)
 
+    @staticmethod
+    def auto_brick(grid: DensityGrid, max_steps: float = 16.0, largest: int = 16) -> int:
+        """The largest power-of-two brick (<= ``largest``) whose crossing at the global majorant costs at
+        most ``max_steps`` tentative collisions: ``global_majorant * brick * voxel_size <= max_steps``.
+        Thin media get coarse bricks (cheap traversal); very dense ones get single-cell bricks, whose tight
+        bounds keep delta tracking from stepping through empty space at the dense rate."""
+        rate = grid.density_scale * grid.max_density * grid.voxel_size
+        brick = largest
+        while brick > 1 and rate * brick > max_steps:
+            brick //= 2
+        return brick
+
     def brick_of(self, x: Tensor) -> Tensor:
         """Integer brick coordinates ``(N, 3)`` of world points, clamped into the brick grid."""
-        b = ((x - self.grid.box.lo) / self.brick_size).floor().long()
+        b = ((x - self.origin) / self.brick_size).floor().long()
         hi = torch.tensor(self.shape, device=x.device) - 1
         return torch.minimum(b.clamp(min=0), hi)
 
@@ -110,7 +135,7 @@ class BrickTraversal:
     def __init__(self, grid: MajorantGrid, origin: Tensor, direction: Tensor, t_near: Tensor, t_far: Tensor) -> None:
         self.grid = grid
         self.t = t_near.clone()
-        self.t_end = t_far
+        self.t_end = t_far.clone()
         self.active = t_far > t_near
         entry = origin + t_near[:, None] * direction
         mid = origin + (0.5 * (t_near + t_far))[:, None] * direction
@@ -120,14 +145,26 @@ class BrickTraversal:
         self.cell = grid.brick_of(inside)
         self.step = torch.sign(direction).long()
         size = grid.brick_size
-        lo = grid.grid.box.lo
-        boundary = lo + (self.cell + (self.step > 0).long()).to(origin.dtype) * size
+        boundary = grid.origin + (self.cell + (self.step > 0).long()).to(origin.dtype) * size
         safe = torch.where(direction == 0, torch.ones_like(direction), direction)
         inf = torch.full_like(direction, float("inf"))
         self.t_next = torch.where(direction == 0, inf, (boundary - origin) / safe)
         self.t_next = torch.maximum(self.t_next, self.t[:, None])
         self.t_delta = torch.where(direction == 0, inf, size / safe.abs())
         self._hi = torch.tensor(grid.shape, device=origin.device) - 1
+
+    _STATE = ("t", "t_end", "active", "cell", "step", "t_next", "t_delta")
+
+    def restart(self, idx: Tensor, origin: Tensor, direction: Tensor, t_near: Tensor, t_far: Tensor) -> None:
+        """Replace the rays at indices ``idx`` by new rays (as if freshly constructed)."""
+        fresh = BrickTraversal(self.grid, origin, direction, t_near, t_far)
+        for name in self._STATE:
+            getattr(self, name)[idx] = getattr(fresh, name)
+
+    def select(self, keep: Tensor) -> None:
+        """Keep only the rays selected by ``keep`` (a boolean mask or an index tensor), in order."""
+        for name in self._STATE:
+            setattr(self, name, getattr(self, name)[keep])
 
     def majorant(self) -> Tensor:
         """Majorant ``(N,)`` of each ray's current brick."""

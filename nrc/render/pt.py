@@ -1,0 +1,270 @@
+"""``renderer=pt``: the reference volumetric path tracer (batched wavefront, unbiased).
+
+Estimator (per camera sample; SCENE.md conventions):
+
+* Free flights by delta tracking against the global majorant; at a real collision the path scatters
+  (throughput x albedo), up to ``integrator.max_scatter`` real scattering events.
+* Next-event estimation at every real scattering vertex: one light chosen uniformly among the scene's
+  lights, its transmittance by the configured ``transmittance`` estimator. Environment light is also
+  gathered by phase-sampled directions that escape the box, combined with NEE by the power heuristic
+  (camera rays that escape see the environment with weight 1).
+* Optional Russian roulette on the throughput (off by default).
+
+Execution: a fixed working set of ``renderer.slots`` paths advances one delta-tracking step per
+iteration; finished paths are replaced from the queue of camera samples, so every slot does useful work
+until the queue runs dry. Scattering vertices push their next-event requests into a queue that is
+traced in batches of ``renderer.shadow_batch`` rays by the transmittance estimator. Peak memory is
+bounded by the working set and the shadow batch, independent of image size and spp:
+about ``slots x 25 + shadow_batch x (40 + estimator state)`` floats (a few tens of MB at the defaults),
+plus the ``(H x W x 3)`` float32 accumulation image.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+from torch import Tensor
+from tqdm import tqdm
+
+from nrc.errors import ConfigError
+from nrc.render.result import RenderResult
+from nrc.scene import Scene
+from nrc.transport.light_sampling import LightSampler
+from nrc.transport.phase import hg_pdf, hg_sample
+from nrc.transport.transmittance import make_transmittance
+from nrc.volume.majorant import MajorantGrid
+
+_FIELDS = ("pix", "o", "d", "t", "t_max", "beta", "n", "pdf")
+
+
+def power_heuristic(a: Tensor, b: Tensor) -> Tensor:
+    """``a^2 / (a^2 + b^2)``, 1 where both are zero."""
+    a2, b2 = a * a, b * b
+    den = a2 + b2
+    return torch.where(den > 0, a2 / den.clamp(min=1e-30), torch.ones_like(den))
+
+
+class PathTracer:
+    """The wavefront path tracer (see module docstring).
+
+    Args:
+        scene: the validated scene.
+        cfg: the app config (uses ``renderer``, ``transmittance``, ``scene.integrator``).
+    """
+
+    name = "pt"
+
+    def __init__(self, scene: Scene, cfg: DictConfig) -> None:
+        r = cfg.renderer
+        self.scene = scene
+        self.device = scene.device
+        self.slots = int(r.get("slots", 1 << 16))
+        self.shadow_batch = int(r.get("shadow_batch", 1 << 15))
+        if self.slots < 1 or self.shadow_batch < 1:
+            raise ConfigError("renderer.slots and renderer.shadow_batch must be >= 1")
+        rr = r.get("russian_roulette") or {}
+        self.rr_enabled = bool(rr.get("enabled", False))
+        self.rr_start = int(rr.get("start", 8))
+        brick = r.get("brick", "auto")
+        if brick == "auto":
+            brick = MajorantGrid.auto_brick(scene.grid)
+        elif isinstance(brick, bool) or not isinstance(brick, int) or brick < 1:
+            raise ConfigError(f"renderer.brick must be 'auto' or an integer >= 1, got {brick!r}")
+        self.majorants = MajorantGrid(scene.grid, brick)
+        # Free flights use the brick majorants ("brick") or one majorant for the whole box ("global",
+        # the same DDA code over a single brick).
+        mode = r.get("free_flight", "brick")
+        if mode not in ("brick", "global"):
+            raise ConfigError(f"renderer.free_flight must be 'brick' or 'global', got {mode!r}")
+        self.free_flight = mode
+        self.tracking_majorants = (
+            self.majorants if mode == "brick" else MajorantGrid(scene.grid, 0)
+        )
+        self.transmittance = make_transmittance(cfg.get("transmittance"))
+        self.lights = LightSampler(scene.lights, self.device)
+        self.spp = scene.integrator.spp
+        self.max_scatter = scene.integrator.max_scatter
+
+    # ------------------------------------------------------------------ camera samples
+    def _camera_paths(self, sample_ids: Tensor, gen: torch.Generator) -> dict[str, Tensor]:
+        """New paths for camera sample ids (``pixel = id // spp``) starting at the box entry."""
+        cam, grid = self.scene.camera, self.scene.grid
+        pix = torch.div(sample_ids, self.spp, rounding_mode="floor")
+        jitter = torch.rand(len(pix), 2, generator=gen, device=self.device)
+        o, d = cam.generate_rays(pix, jitter)
+        t0, t1 = grid.box.intersect(o, d)
+        n = len(pix)
+        return {
+            "pix": pix, "o": o.contiguous(), "d": d, "t": t0, "t_max": t1,
+            "beta": torch.ones(n, 3, device=self.device),
+            "n": torch.zeros(n, dtype=torch.long, device=self.device),
+            "pdf": torch.zeros(n, device=self.device),  # phase pdf of d; 0 marks a camera ray
+        }
+
+    # ------------------------------------------------------------------ next-event estimation
+    def _shade_shadow(self, q: dict[str, Tensor], image: Tensor, gen: torch.Generator) -> int:
+        """Trace a batch of next-event requests and add their contributions; returns the ray count."""
+        grid = self.scene.grid
+        x, d_in = q["x"], q["d"]
+        ls = self.lights.sample(x, torch.rand(len(x), 4, generator=gen, device=self.device))
+        _, t_exit = grid.box.intersect(x, ls.wi)
+        t1 = torch.minimum(t_exit, ls.distance)
+        T = self.transmittance(grid, self.majorants, x, ls.wi, torch.zeros_like(t1), t1, gen)
+        cos = (d_in * ls.wi).sum(-1)
+        phase = hg_pdf(self.scene.g, cos)
+        w = torch.where(ls.is_env, power_heuristic(ls.light_pdf, phase), torch.ones_like(phase))
+        contrib = q["beta"] * ls.weight * (phase * T * w)[:, None]
+        image.index_add_(0, q["pix"], contrib)
+        return len(x)
+
+    # ------------------------------------------------------------------ scattering
+    def _scatter(
+        self,
+        s: dict[str, Tensor],
+        trav: Any,
+        idx: Tensor,
+        x: Tensor,
+        u_rr: Tensor,
+        finished: Tensor,
+        shadow_q: list[dict[str, Tensor]],
+        gen: torch.Generator,
+    ) -> None:
+        """Real scattering at ``x`` for slots ``idx``: queue NEE, roulette, sample the phase function."""
+        scene = self.scene
+        n_new = s["n"][idx] + 1
+        beta = s["beta"][idx] * scene.albedo
+        if self.lights.n_lights:
+            shadow_q.append({"x": x, "d": s["d"][idx], "beta": beta, "pix": s["pix"][idx]})
+        # After the last vertex the path only continues if the sky can be reached by phase sampling (MIS).
+        stop = beta.amax(-1) <= 0
+        if not self.lights.has_env:
+            stop = stop | (n_new >= self.max_scatter)
+        if self.rr_enabled:
+            q = beta.amax(-1).clamp(0.05, 1.0)
+            in_rr = n_new >= self.rr_start
+            stop = stop | (in_rr & (u_rr >= q))
+            beta = torch.where(in_rr[:, None], beta / q[:, None], beta)
+        d_new, pdf_new = hg_sample(scene.g, s["d"][idx], torch.rand(len(idx), 2, generator=gen, device=self.device))
+        _, t_far = scene.grid.box.intersect(x, d_new)
+        zero = torch.zeros_like(t_far)
+        s["o"][idx] = x
+        s["d"][idx] = d_new
+        s["t"][idx] = zero
+        s["t_max"][idx] = t_far
+        s["beta"][idx] = beta
+        s["n"][idx] = n_new
+        s["pdf"][idx] = pdf_new
+        trav.restart(idx, x, d_new, zero, t_far)
+        finished[idx[stop]] = True
+
+    # ------------------------------------------------------------------ main loop
+    def render(self, progress: bool = False) -> RenderResult:
+        scene, dev = self.scene, self.device
+        cam = scene.camera
+        total = cam.num_pixels * self.spp
+        gen = torch.Generator(device=dev).manual_seed(scene.integrator.seed)
+        image = torch.zeros(cam.num_pixels, 3, device=dev)
+        timers = {"free_flight": 0.0, "shadow": 0.0, "refill": 0.0}
+        counts = {"tracking_steps": 0, "shadow_rays": 0, "iterations": 0}
+        has_env, n_lights = self.lights.has_env, self.lights.n_lights
+
+        start = time.perf_counter()
+        next_id = min(self.slots, total)
+        s = self._camera_paths(torch.arange(next_id, device=dev), gen)
+        trav = self.tracking_majorants.traverse(s["o"], s["d"], s["t"], s["t_max"])
+        shadow_q: list[dict[str, Tensor]] = []
+        queued = 0
+        bar = tqdm(total=total, unit="spp", unit_scale=True, disable=not progress, desc="pt", leave=False)
+        while len(s["pix"]) > 0:
+            t_ff = time.perf_counter()
+            counts["iterations"] += 1
+            n_active = len(s["pix"])
+            counts["tracking_steps"] += n_active
+            u = torch.rand(n_active, 3, generator=gen, device=dev)
+            # One delta-tracking step per slot against its brick's majorant: either a tentative
+            # collision inside the brick or a move to the brick's exit (memoryless restart there).
+            m_b = trav.majorant()
+            t_exit = trav.t_exit()
+            step = -torch.log1p(-u[:, 0]) / m_b.clamp(min=1e-30)
+            t_cand = torch.where(m_b > 0, s["t"] + step, torch.full_like(step, float("inf")))
+            cross = t_cand >= t_exit
+            escaped = (cross & (t_exit >= trav.t_end)) | ~trav.active
+            x = s["o"] + torch.where(cross, t_exit, t_cand)[:, None] * s["d"]
+            sigma = scene.grid.sigma_t(x)
+            # Bounds are tight, so points rounded onto a neighbouring brick may exceed them by a hair.
+            if bool(((sigma > m_b * 1.001 + 1e-4 * self.majorants.global_majorant + 1e-6) & ~cross).any()):
+                raise RuntimeError("majorant underestimates sigma_t: the majorant grid is stale or wrong")
+            real = ~cross & (u[:, 1] * m_b < sigma)
+            s["t"] = torch.where(cross, t_exit, torch.where(real, s["t"], t_cand))
+            trav.advance(cross & ~escaped)
+            finished = escaped.clone()
+
+            # Escaping paths: environment radiance, MIS-weighted against NEE unless it is a camera ray.
+            if has_env and bool(escaped.any()):
+                e = escaped.nonzero().squeeze(1)
+                d_e, pdf_e = s["d"][e], s["pdf"][e]
+                le = self.lights.env_radiance(d_e)
+                w = torch.where(pdf_e > 0, power_heuristic(pdf_e, self.lights.env_pdf(d_e)), torch.ones_like(pdf_e))
+                image.index_add_(0, s["pix"][e], s["beta"][e] * le * w[:, None])
+
+            if bool(real.any()):
+                r = real.nonzero().squeeze(1)
+                at_limit = s["n"][r] >= self.max_scatter  # the continuation of the last vertex collided
+                scatter = r[~at_limit]
+                finished[r[at_limit]] = True
+                if len(scatter):
+                    self._scatter(s, trav, scatter, x[scatter], u[scatter, 2], finished, shadow_q, gen)
+                    queued += len(scatter) if n_lights else 0
+            timers["free_flight"] += time.perf_counter() - t_ff
+
+            if queued >= self.shadow_batch:
+                t_sh = time.perf_counter()
+                q = {k: torch.cat([b[k] for b in shadow_q]) for k in shadow_q[0]}
+                counts["shadow_rays"] += self._shade_shadow(q, image, gen)
+                shadow_q, queued = [], 0
+                timers["shadow"] += time.perf_counter() - t_sh
+
+            # Replace finished paths with new camera samples; compact once the queue is empty.
+            t_rf = time.perf_counter()
+            done = finished.nonzero().squeeze(1)
+            if len(done):
+                bar.update(len(done))
+                k = min(len(done), total - next_id)
+                if k:
+                    fresh = self._camera_paths(torch.arange(next_id, next_id + k, device=dev), gen)
+                    slots = done[:k]
+                    for f in _FIELDS:
+                        s[f][slots] = fresh[f]
+                    trav.restart(slots, fresh["o"], fresh["d"], fresh["t"], fresh["t_max"])
+                    next_id += k
+                    done = done[k:]
+                if len(done):
+                    keep = torch.ones(len(s["pix"]), dtype=torch.bool, device=dev)
+                    keep[done] = False
+                    s = {f: v[keep] for f, v in s.items()}
+                    trav.select(keep)
+            timers["refill"] += time.perf_counter() - t_rf
+        if queued:
+            t_sh = time.perf_counter()
+            q = {k: torch.cat([b[k] for b in shadow_q]) for k in shadow_q[0]}
+            counts["shadow_rays"] += self._shade_shadow(q, image, gen)
+            timers["shadow"] += time.perf_counter() - t_sh
+        bar.close()
+        elapsed = time.perf_counter() - start
+        img = (image / self.spp).reshape(cam.height, cam.width, 3)
+        if not bool(torch.isfinite(img).all()):
+            raise RuntimeError("path tracer produced non-finite pixels")
+        metrics: dict[str, Any] = {
+            "renderer": self.name,
+            "spp": self.spp,
+            "samples": total,
+            "time_render_s": elapsed,
+            "samples_per_second": total / elapsed if elapsed > 0 else math.inf,
+            **{f"time_{k}_s": v for k, v in timers.items()},
+            **counts,
+        }
+        return RenderResult(image=img.cpu().numpy(), metrics=metrics)

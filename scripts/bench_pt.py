@@ -1,0 +1,106 @@
+"""Benchmark the path tracer against Mitsuba 3 on the canonical scene (samples per second, same run).
+
+Scene: the ``sun`` preset with the shared Disney cloud (``../shared/data/wdas_cloud_sixteenth.vdb``),
+``density_scale 0.6``, ``g 0.8``, ``max_scatter 64``, no Russian roulette, 128 x 72 pixels. Start-up
+(scene load, first-call warm-up) is excluded from the timings. When Mitsuba 3 is installed
+(``pip install mitsuba==3.9.1``) the same scene is rendered with its ``scalar_rgb`` ``volpath``
+(``max_depth = max_scatter + 1``, no roulette) in the same run and the ratio is printed, with the
+relative difference of the two image means as an agreement check.
+
+Usage::
+
+    python scripts/bench_pt.py [--spp 64] [--vdb PATH] [--free-flight brick|global] [--transmittance ratio]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_dir
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from nrc.render.pt import PathTracer  # noqa: E402
+from nrc.scene import load_scene  # noqa: E402
+
+DEFAULT_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
+
+
+def config(args: argparse.Namespace, spp: int, width: int, height: int):
+    overrides = [
+        "renderer=pt", "scene=sun", "scene.volume.source=vdb", f"scene.volume.path={args.vdb}",
+        "scene.volume.density_scale=0.6", "scene.volume.g=0.8", "scene.integrator.max_scatter=64",
+        f"scene.integrator.spp={spp}", f"scene.camera.width={width}", f"scene.camera.height={height}",
+        f"renderer.free_flight={args.free_flight}", f"transmittance={args.transmittance}",
+        "renderer.russian_roulette.enabled=false",
+    ]
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=overrides)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--spp", type=int, default=64)
+    ap.add_argument("--width", type=int, default=128)
+    ap.add_argument("--height", type=int, default=72)
+    ap.add_argument("--vdb", type=Path, default=DEFAULT_VDB)
+    ap.add_argument("--free-flight", default="brick", choices=["brick", "global"])
+    ap.add_argument("--transmittance", default="ratio")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--no-mitsuba", action="store_true")
+    ap.add_argument("--json", type=Path, help="also write the results here")
+    args = ap.parse_args()
+    if not args.vdb.is_file():
+        sys.exit(f"bench_pt: Disney cloud not found at {args.vdb} (pass --vdb)")
+    torch.set_num_threads(args.threads)
+
+    # Warm-up on a tiny image (first-call costs, allocator), then the timed render.
+    warm = config(args, 1, 16, 9)
+    PathTracer(load_scene(warm.scene), warm).render()
+    cfg = config(args, args.spp, args.width, args.height)
+    scene = load_scene(cfg.scene)
+    pt = PathTracer(scene, cfg)
+    t0 = time.perf_counter()
+    result = pt.render(progress=True)
+    elapsed = time.perf_counter() - t0
+    samples = args.width * args.height * args.spp
+    out = {
+        "scene": "sun, wdas_cloud_sixteenth, density_scale 0.6, g 0.8, max_scatter 64, no RR",
+        "resolution": [args.width, args.height], "spp": args.spp, "threads": args.threads,
+        "free_flight": args.free_flight, "transmittance": args.transmittance, "torch": torch.__version__,
+        "nrc_seconds": elapsed, "nrc_samples_per_s": samples / elapsed,
+        "nrc_image_mean": float(result.image.mean()),
+        "nrc_stage_seconds": {k: v for k, v in result.metrics.items() if k.startswith("time_")},
+        "nrc_tracking_steps": result.metrics["tracking_steps"], "nrc_shadow_rays": result.metrics["shadow_rays"],
+    }
+    print(f"nrc pt:   {samples} samples in {elapsed:.2f} s = {samples / elapsed:,.0f} samples/s")
+
+    if not args.no_mitsuba:
+        from nrc.render.mitsuba_bridge import mitsuba_available, render_mitsuba
+
+        if mitsuba_available():
+            render_mitsuba(load_scene(warm.scene), threads=args.threads)  # warm-up
+            img, secs = render_mitsuba(scene, threads=args.threads)
+            out.update({
+                "mitsuba_seconds": secs, "mitsuba_samples_per_s": samples / secs,
+                "mitsuba_image_mean": float(np.mean(img)), "ratio_nrc_over_mitsuba": secs / elapsed,
+                "image_mean_rel_diff": float(result.image.mean() / np.mean(img) - 1.0),
+            })
+            print(f"mitsuba:  {samples} samples in {secs:.2f} s = {samples / secs:,.0f} samples/s")
+            print(f"ratio nrc/mitsuba (samples/s): {secs / elapsed:.2f}; "
+                  f"image means differ by {out['image_mean_rel_diff'] * 100:+.2f} %")
+        else:
+            print("mitsuba: not installed (pip install mitsuba==3.9.1); skipped")
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
