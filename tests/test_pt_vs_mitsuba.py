@@ -25,11 +25,16 @@ def block_stats(images: list[np.ndarray], block: int) -> tuple[np.ndarray, np.nd
     return per_render.mean(0), per_render.std(0, ddof=1) / np.sqrt(r)
 
 
-@pytest.mark.parametrize("preset", ["sun_sky", "point"])
+# A point light inside the medium makes next-event estimation heavy-tailed (the 1/r^2 of vertices next to
+# the light has infinite variance), so image means converge too slowly for a test: the light sits outside.
+CASES = {"sun_sky": [], "point": ["scene.lights.0.position=[30,70,40]"]}
+
+
+@pytest.mark.parametrize("preset", list(CASES))
 def test_pt_matches_mitsuba(preset):
     overrides = [
-        "renderer=pt", f"scene={preset}", "scene.volume.procedural.resolution=24",
-        "scene.camera.width=16", "scene.camera.height=8", "scene.integrator.spp=64",
+        "renderer=pt", f"scene={preset}", *CASES[preset], "scene.volume.procedural.resolution=24",
+        "scene.camera.width=16", "scene.camera.height=8", "scene.integrator.spp=256",
         "scene.integrator.max_scatter=6", "scene.volume.g=0.6", "scene.volume.albedo=0.9",
     ]
     ours, theirs = [], []
@@ -42,7 +47,10 @@ def test_pt_matches_mitsuba(preset):
     m_b, se_b = block_stats(theirs, 4)
     se = np.sqrt(se_a**2 + se_b**2)
     z = (m_a - m_b) / np.maximum(se, 1e-6 * np.abs(m_b).max())
-    # 2 x 4 blocks x 3 channels = 24 comparisons: all within 4.5 standard errors, and the whole-image
-    # means agree within 2 % (the images are far from black).
+    # 2 x 4 blocks x 3 channels = 24 comparisons, all within 4.5 standard errors; the whole-image means
+    # (standard errors from the spread over seeds) within 4.
     assert np.abs(z).max() < 4.5, f"max |z| = {np.abs(z).max():.2f}"
-    assert float(np.mean(ours)) == pytest.approx(float(np.mean(theirs)), rel=0.02)
+    mean_a, mean_b = [np.array([im.mean() for im in ims]) for ims in (ours, theirs)]
+    se_mean = np.sqrt((mean_a.var(ddof=1) + mean_b.var(ddof=1)) / SEEDS)
+    assert abs(mean_a.mean() - mean_b.mean()) < 4 * se_mean
+    assert mean_b.mean() > 0 and abs(mean_a.mean() / mean_b.mean() - 1) < 0.1

@@ -63,7 +63,7 @@ class PathTracer:
         self.scene = scene
         self.device = scene.device
         self.slots = int(r.get("slots", 1 << 16))
-        self.shadow_batch = int(r.get("shadow_batch", 1 << 15))
+        self.shadow_batch = int(r.get("shadow_batch", 1 << 17))
         if self.slots < 1 or self.shadow_batch < 1:
             raise ConfigError("renderer.slots and renderer.shadow_batch must be >= 1")
         rr = r.get("russian_roulette") or {}
