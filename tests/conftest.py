@@ -23,6 +23,28 @@ def compose(overrides: list[str] | None = None):
         return hydra_compose(config_name="config", overrides=overrides or [])
 
 
+@pytest.fixture(scope="module")
+def single_thread():
+    """One intra-op thread for tests that run many small batched ops: as fast, and immune to a busy core."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def unit(v) -> torch.Tensor:
+    """Rows of ``v`` normalised to unit length (float32)."""
+    v = torch.as_tensor(v, dtype=torch.float32)
+    return v / v.norm(dim=-1, keepdim=True)
+
+
+def constant_grid():
+    """A small constant-density grid (sigma_t = 0.8 everywhere in its box)."""
+    from nrc.volume.grid import DensityGrid
+
+    return DensityGrid(torch.ones(6, 5, 4), center=(0.2, -0.1, 0.3), diagonal=3.0, density_scale=0.8)
+
+
 @pytest.fixture
 def shared_vdb() -> Path:
     if not SHARED_VDB.is_file():

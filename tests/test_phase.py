@@ -10,13 +10,7 @@ from scipy import stats
 from nrc.transport.phase import hg_pdf, hg_sample, hg_sample_cos, orthonormal_basis
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """These tests run many small batched ops: one intra-op thread is as fast and immune to a busy core."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def hg_cdf_one_minus_mu(g: float, x: np.ndarray) -> np.ndarray:

@@ -17,28 +17,14 @@ from nrc.transport.transmittance.unbiased_raymarch import (
     symmetric_mean_estimate,
     tuple_size,
 )
+from conftest import constant_grid, unit
 from nrc.volume.grid import DensityGrid
 from nrc.volume.majorant import MajorantGrid
 
 CONF = Path(__file__).resolve().parent.parent / "conf" / "transmittance"
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """These tests run many small batched ops: one intra-op thread is as fast and immune to a busy core."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-def unit(v):
-    v = torch.as_tensor(v, dtype=torch.float32)
-    return v / v.norm(dim=-1, keepdim=True)
-
-
-def constant_grid():
-    return DensityGrid(torch.ones(6, 5, 4), center=(0.2, -0.1, 0.3), diagonal=3.0, density_scale=0.8)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def ramp_grid():

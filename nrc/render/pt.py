@@ -178,7 +178,8 @@ class PathTracer:
         trav = self.tracking_majorants.traverse(s["o"], s["d"], s["t"], s["t_max"])
         shadow_q: list[dict[str, Tensor]] = []
         queued = 0
-        bar = tqdm(total=total, unit="spp", unit_scale=True, disable=not progress, desc="pt", leave=False)
+        bar = tqdm(total=total, unit="sample", unit_scale=True, disable=not progress, desc="pt", leave=False,
+                   mininterval=1.0)
         while len(s["pix"]) > 0:
             t_ff = time.perf_counter()
             counts["iterations"] += 1
