@@ -32,8 +32,26 @@ CASES = {"sun_sky": [], "point": ["scene.lights.0.position=[30,70,40]"]}
 
 @pytest.mark.parametrize("preset", list(CASES))
 def test_pt_matches_mitsuba(preset):
+    compare_with_mitsuba(CASES[preset], preset)
+
+
+def test_pt_matches_mitsuba_under_a_latlong_environment(tmp_path):
+    """Environment-map importance sampling and MIS against Mitsuba's envmap emitter."""
+    from nrc.io import write_exr
+
+    h, w = 16, 32
+    v = (np.arange(h) + 0.5) / h
+    u = (np.arange(w) + 0.5) / w
+    sky = np.stack(np.broadcast_arrays(0.2 + 0.6 * (1 - v)[:, None], 0.3 + 0.5 * (1 - v)[:, None],
+                                       0.5 + 0.4 * (1 - v)[:, None] + 0 * u[None]), -1).astype(np.float32)
+    sky[2:4, 20:22] = 60.0  # a small bright sun up high, about a quarter turn from -z towards +x
+    write_exr(tmp_path / "env.exr", sky)
+    compare_with_mitsuba(["scene.lights.0.radiance=null", f"+scene.lights.0.path={tmp_path / 'env.exr'}"], "sky")
+
+
+def compare_with_mitsuba(extra: list[str], preset: str) -> None:
     overrides = [
-        "renderer=pt", f"scene={preset}", *CASES[preset], "scene.volume.procedural.resolution=24",
+        "renderer=pt", f"scene={preset}", *extra, "scene.volume.procedural.resolution=24",
         "scene.camera.width=16", "scene.camera.height=8", "scene.integrator.spp=256",
         "scene.integrator.max_scatter=6", "scene.volume.g=0.6", "scene.volume.albedo=0.9",
     ]
