@@ -2,8 +2,9 @@
 
 Estimator (per camera sample; SCENE.md conventions):
 
-* Free flights by delta tracking against the global majorant; at a real collision the path scatters
-  (throughput x albedo), up to ``integrator.max_scatter`` real scattering events.
+* Free flights by delta tracking against the brick majorants (a DDA over the majorant grid) or one global
+  majorant (``renderer.free_flight``); at a real collision the path scatters (throughput x albedo), up to
+  ``integrator.max_scatter`` real scattering events.
 * Next-event estimation at every real scattering vertex: one light chosen uniformly among the scene's
   lights, its transmittance by the configured ``transmittance`` estimator. Environment light is also
   gathered by phase-sampled directions that escape the box, combined with NEE by the power heuristic
@@ -81,9 +82,7 @@ class PathTracer:
         if mode not in ("brick", "global"):
             raise ConfigError(f"renderer.free_flight must be 'brick' or 'global', got {mode!r}")
         self.free_flight = mode
-        self.tracking_majorants = (
-            self.majorants if mode == "brick" else MajorantGrid(scene.grid, 0)
-        )
+        self.tracking_majorants = self.majorants if mode == "brick" else MajorantGrid(scene.grid, 0)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
         self.lights = LightSampler(scene.lights, self.device)
         self.spp = scene.integrator.spp
@@ -261,6 +260,9 @@ class PathTracer:
             raise RuntimeError("path tracer produced non-finite pixels")
         metrics: dict[str, Any] = {
             "renderer": self.name,
+            "free_flight": self.free_flight,
+            "brick": self.majorants.brick,
+            "transmittance": self.transmittance.name,
             "spp": self.spp,
             "samples": total,
             "time_render_s": elapsed,
