@@ -7,6 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from nrc.volume.grid import DensityGrid
+
 REPO = Path(__file__).resolve().parent.parent
 CONF_DIR = REPO / "conf"
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
@@ -40,8 +42,6 @@ def unit(v) -> torch.Tensor:
 
 def constant_grid():
     """A small constant-density grid (sigma_t = 0.8 everywhere in its box)."""
-    from nrc.volume.grid import DensityGrid
-
     return DensityGrid(torch.ones(6, 5, 4), center=(0.2, -0.1, 0.3), diagonal=3.0, density_scale=0.8)
 
 
@@ -50,3 +50,28 @@ def shared_vdb() -> Path:
     if not SHARED_VDB.is_file():
         pytest.skip(f"shared Disney cloud not found at {SHARED_VDB}")
     return SHARED_VDB
+
+
+def hard_rays(grid):
+    """Rays from inside, grazing faces and edges, along axes, and missing the box."""
+    lo, hi, c, ext = grid.box.lo, grid.box.hi, grid.box.center, grid.box.extent
+    o = [
+        c, c + 0.3 * ext, lo + 1e-6,  # inside, at a corner
+        torch.stack([lo[0] - 1, c[1], hi[2]]),  # grazing the +z face
+        torch.stack([lo[0] - 1, lo[1], lo[2]]),  # grazing an edge
+        torch.stack([c[0], hi[1] + 1, c[2]]),  # down the y axis
+        torch.stack([lo[0] - 1, hi[1] + 1, c[2]]),  # misses
+        c + 5 * ext,  # outside, pointing away
+    ]
+    d = [
+        [0.3, 0.2, 0.1], [0.0, 0.0, -1.0], [1.0, 1.0, 1.0],
+        [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [1.0, 1.0, 0.0], [1.0, 1.0, 1.0],
+    ]
+    return torch.stack(o), unit(torch.tensor(d))
+
+
+def spike_grid():
+    """A single dense voxel in an empty 7^3 grid (sigma_t 50 at its centre)."""
+    D = torch.zeros(7, 7, 7)
+    D[3, 3, 3] = 1.0
+    return DensityGrid(D, center=(0, 0, 0), diagonal=2.0, density_scale=50.0)

@@ -17,7 +17,7 @@ from nrc.transport.transmittance.unbiased_raymarch import (
     symmetric_mean_estimate,
     tuple_size,
 )
-from conftest import constant_grid, unit
+from conftest import constant_grid, hard_rays, spike_grid, unit
 from nrc.volume.grid import DensityGrid
 from nrc.volume.majorant import MajorantGrid
 
@@ -192,27 +192,7 @@ def test_symmetric_means_divide_by_the_order_probabilities():
         assert float(got[r]) == pytest.approx(total / (N + 1), rel=1e-12)
 
 
-def hard_rays(grid):
-    lo, hi, c, ext = grid.box.lo, grid.box.hi, grid.box.center, grid.box.extent
-    o = [
-        c, c + 0.3 * ext, lo + 1e-6,
-        torch.stack([lo[0] - 1, c[1], hi[2]]),  # grazing the +z face
-        torch.stack([lo[0] - 1, lo[1], lo[2]]),  # grazing an edge
-        torch.stack([c[0], hi[1] + 1, c[2]]),  # down the y axis
-        torch.stack([lo[0] - 1, hi[1] + 1, c[2]]),  # misses
-        c + 5 * ext,  # outside, pointing away
-    ]
-    d = [
-        [0.3, 0.2, 0.1], [0.0, 0.0, -1.0], [1.0, 1.0, 1.0],
-        [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [1.0, 1.0, 0.0], [1.0, 1.0, 1.0],
-    ]
-    return torch.stack(o), unit(torch.tensor(d))
 
-
-def spike_grid():
-    D = torch.zeros(7, 7, 7)
-    D[3, 3, 3] = 1.0
-    return DensityGrid(D, center=(0, 0, 0), diagonal=2.0, density_scale=50.0)
 
 
 HARD = {
