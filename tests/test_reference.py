@@ -1,0 +1,82 @@
+"""Chunked, resumable reference renders (``nrc.render.reference`` / ``scripts/render_reference.py``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import compose
+from nrc.errors import ConfigError, NRCError
+from nrc.io import read_exr
+from nrc.render.pt import PathTracer
+from nrc.render.reference import checkpoint_path, config_hash, render_reference
+from nrc.scene import load_scene
+
+TINY = [
+    "renderer=pt", "scene.volume.procedural.resolution=16", "scene.camera.width=6", "scene.camera.height=4",
+    "scene.integrator.seed=3",
+]
+CHUNK, TOTAL = 2, 8  # 4 chunks
+
+
+@pytest.fixture(scope="module")
+def full(tmp_path_factory) -> tuple[np.ndarray, dict]:
+    """An uninterrupted 4-chunk reference: the image returned, and the EXR's image and header."""
+    out = tmp_path_factory.mktemp("full") / "ref.exr"
+    image = render_reference(compose(TINY), out, CHUNK, TOTAL, progress=False)
+    assert not checkpoint_path(out).exists()
+    rgb, attrs = read_exr(out)
+    np.testing.assert_array_equal(rgb, image)
+    return image, attrs
+
+
+def test_header_has_spp_and_config_hash(full):
+    _, attrs = full
+    assert attrs["spp"] == TOTAL and attrs["seed"] == 3
+    assert attrs["config_hash"] == config_hash(compose(TINY))
+
+
+def test_reference_is_the_mean_of_chunks_with_consecutive_seeds(full):
+    cfg = compose(TINY + [f"scene.integrator.spp={CHUNK}"])
+    chunks = []
+    for i in range(TOTAL // CHUNK):
+        cfg.scene.integrator.seed = 3 + i
+        chunks.append(PathTracer(load_scene(cfg.scene), cfg).render().image.astype(np.float64))
+    np.testing.assert_allclose(full[0], np.mean(chunks, axis=0), rtol=1e-6, atol=1e-7)
+    assert full[0].mean() > 0
+
+
+def test_interrupted_and_resumed_run_is_bitwise_identical(full, tmp_path):
+    out = tmp_path / "ref.exr"
+    assert render_reference(compose(TINY), out, CHUNK, TOTAL, progress=False, stop_after=2) is None
+    with np.load(checkpoint_path(out)) as ck:
+        assert int(ck["chunks_done"]) == 2
+    assert not out.exists()
+    image = render_reference(compose(TINY), out, CHUNK, TOTAL, progress=False)
+    np.testing.assert_array_equal(image, full[0])
+    np.testing.assert_array_equal(read_exr(out)[0], full[0])
+    assert not checkpoint_path(out).exists()
+
+
+def test_resuming_with_another_config_is_refused(tmp_path):
+    out = tmp_path / "ref.exr"
+    render_reference(compose(TINY), out, CHUNK, TOTAL, progress=False, stop_after=1)
+    with pytest.raises(NRCError, match="different scene/renderer/transmittance config"):
+        render_reference(compose(TINY + ["scene.volume.g=0.5"]), out, CHUNK, TOTAL, progress=False)
+    with pytest.raises(NRCError, match="chunk_spp=2"):
+        render_reference(compose(TINY), out, 4, TOTAL, progress=False)
+    assert checkpoint_path(out).exists()  # left for the user to resume or delete
+
+
+def test_config_hash_ignores_spp_and_seed_only():
+    base = config_hash(compose(TINY))
+    assert config_hash(compose(TINY + ["scene.integrator.spp=99", "scene.integrator.seed=7"])) == base
+    assert config_hash(compose(TINY + ["transmittance=track_length"])) != base
+    assert config_hash(compose(TINY + ["scene.integrator.max_scatter=3"])) != base
+
+
+def test_bad_chunking_and_renderer_are_config_errors(tmp_path):
+    with pytest.raises(ConfigError, match="multiple of chunk spp"):
+        render_reference(compose(TINY), tmp_path / "r.exr", 3, TOTAL, progress=False)
+    with pytest.raises(ConfigError, match="renderer=pt"):
+        render_reference(compose(TINY + ["renderer=preview"]), tmp_path / "r.exr", CHUNK, TOTAL, progress=False)
