@@ -36,6 +36,7 @@ from nrc.render.result import RenderResult
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.phase import hg_pdf, hg_sample
+from nrc.transport.tracking import MAJORANT_ATOL, MAJORANT_RTOL, MajorantError
 from nrc.transport.transmittance import make_transmittance
 from nrc.volume.majorant import MajorantGrid
 
@@ -105,6 +106,23 @@ class PathTracer:
         }
 
     # ------------------------------------------------------------------ next-event estimation
+    def _flush_shadows(
+        self,
+        shadow_q: list[dict[str, Tensor]],
+        image: Tensor,
+        gen: torch.Generator,
+        timers: dict[str, float],
+        counts: dict[str, int],
+    ) -> None:
+        """Trace every queued next-event request (emptying the queue), timed and counted."""
+        if not shadow_q:
+            return
+        t_sh = time.perf_counter()
+        q = {k: torch.cat([b[k] for b in shadow_q]) for k in shadow_q[0]}
+        shadow_q.clear()
+        counts["shadow_rays"] += self._shade_shadow(q, image, gen)
+        timers["shadow"] += time.perf_counter() - t_sh
+
     def _shade_shadow(self, q: dict[str, Tensor], image: Tensor, gen: torch.Generator) -> int:
         """Trace a batch of next-event requests and add their contributions; returns the ray count."""
         grid = self.scene.grid
@@ -195,9 +213,11 @@ class PathTracer:
             escaped = (cross & (t_exit >= trav.t_end)) | ~trav.active
             x = s["o"] + torch.where(cross, t_exit, t_cand)[:, None] * s["d"]
             sigma = scene.grid.sigma_t(x)
-            # Bounds are tight, so points rounded onto a neighbouring brick may exceed them by a hair.
-            if bool(((sigma > m_b * 1.001 + 1e-4 * self.majorants.global_majorant + 1e-6) & ~cross).any()):
-                raise RuntimeError("majorant underestimates sigma_t: the majorant grid is stale or wrong")
+            # Bounds are tight, so points rounded onto a neighbouring brick may exceed them by a hair:
+            # the same tolerance as every other majorant check (nrc.transport.tracking).
+            limit = m_b * (1.0 + MAJORANT_RTOL) + MAJORANT_ATOL * self.majorants.global_majorant
+            if bool(((sigma > limit) & ~cross).any()):
+                raise MajorantError("sigma_t exceeded the free-flight majorant: the majorant grid is stale or wrong")
             real = ~cross & (u[:, 1] * m_b < sigma)
             s["t"] = torch.where(cross, t_exit, torch.where(real, s["t"], t_cand))
             trav.advance(cross & ~escaped)
@@ -222,11 +242,8 @@ class PathTracer:
             timers["free_flight"] += time.perf_counter() - t_ff
 
             if queued >= self.shadow_batch:
-                t_sh = time.perf_counter()
-                q = {k: torch.cat([b[k] for b in shadow_q]) for k in shadow_q[0]}
-                counts["shadow_rays"] += self._shade_shadow(q, image, gen)
-                shadow_q, queued = [], 0
-                timers["shadow"] += time.perf_counter() - t_sh
+                self._flush_shadows(shadow_q, image, gen, timers, counts)
+                queued = 0
 
             # Replace finished paths with new camera samples; compact once the queue is empty.
             t_rf = time.perf_counter()
@@ -248,11 +265,7 @@ class PathTracer:
                     s = {f: v[keep] for f, v in s.items()}
                     trav.select(keep)
             timers["refill"] += time.perf_counter() - t_rf
-        if queued:
-            t_sh = time.perf_counter()
-            q = {k: torch.cat([b[k] for b in shadow_q]) for k in shadow_q[0]}
-            counts["shadow_rays"] += self._shade_shadow(q, image, gen)
-            timers["shadow"] += time.perf_counter() - t_sh
+        self._flush_shadows(shadow_q, image, gen, timers, counts)
         bar.close()
         elapsed = time.perf_counter() - start
         img = (image / self.spp).reshape(cam.height, cam.width, 3)
