@@ -84,6 +84,11 @@ def _vec3(value: Any, key: str, nonnegative: bool = False) -> list[float]:
     return out
 
 
+def _tensor(values: Any, device: torch.device) -> torch.Tensor:
+    """A float32 tensor on ``device`` from a list of numbers or an array."""
+    return torch.tensor(values, dtype=torch.float32, device=device)
+
+
 def _existing_file(value: Any, key: str) -> Path:
     if not isinstance(value, str) or not value:
         raise ConfigError(f"{key} must be a file path, got {value!r}")
@@ -124,13 +129,13 @@ def _camera(cam: Mapping[str, Any], device: torch.device) -> Camera:
         raise ConfigError(f"{w}.fov_y must be in (0, 180) degrees, got {fov}")
     width = _integer(_get(cam, "width", w), f"{w}.width", 1)
     height = _integer(_get(cam, "height", w), f"{w}.height", 1)
-    t = lambda v: torch.tensor(v, dtype=torch.float32, device=device)  # noqa: E731
     fwd = np.subtract(look_at, position)
     if np.linalg.norm(fwd) == 0:
         raise ConfigError(f"{w}.look_at must differ from {w}.position")
     if np.linalg.norm(np.cross(fwd, up)) <= 1e-6 * np.linalg.norm(fwd) * max(np.linalg.norm(up), 1e-30):
         raise ConfigError(f"{w}.up must not be parallel to the view direction (look_at - position)")
-    return Camera.look_at(t(position), t(look_at), t(up), fov, width, height)
+    pos, target, up_t = (_tensor(v, device) for v in (position, look_at, up))
+    return Camera.look_at(pos, target, up_t, fov, width, height)
 
 
 def _light(spec: Mapping[str, Any], index: int, device: torch.device) -> Light:
@@ -138,18 +143,17 @@ def _light(spec: Mapping[str, Any], index: int, device: torch.device) -> Light:
     if not isinstance(spec, (Mapping, DictConfig)):
         raise ConfigError(f"{w} must be a mapping with a 'type' key, got {spec!r}")
     kind = spec.get("type")
-    t = lambda v: torch.tensor(v, dtype=torch.float32, device=device)  # noqa: E731
     if kind == "directional":
         d = _vec3(_get(spec, "direction", w), f"{w}.direction")
         n = math.sqrt(sum(c * c for c in d))
         if n == 0:
             raise ConfigError(f"{w}.direction must be non-zero")
         irr = _vec3(_get(spec, "irradiance", w), f"{w}.irradiance", nonnegative=True)
-        return DirectionalLight(t([c / n for c in d]), t(irr))
+        return DirectionalLight(_tensor([c / n for c in d], device), _tensor(irr, device))
     if kind == "point":
         pos = _vec3(_get(spec, "position", w), f"{w}.position")
         inten = _vec3(_get(spec, "intensity", w), f"{w}.intensity", nonnegative=True)
-        return PointLight(t(pos), t(inten))
+        return PointLight(_tensor(pos, device), _tensor(inten, device))
     if kind == "environment":
         scale = _number(spec.get("scale", 1.0), f"{w}.scale")
         if scale < 0:
@@ -159,13 +163,14 @@ def _light(spec: Mapping[str, Any], index: int, device: torch.device) -> Light:
         if has_rad == has_path:
             raise ConfigError(f"{w}: an environment light needs exactly one of 'radiance' or 'path'")
         if has_rad:
-            return EnvironmentLight(t(_vec3(spec["radiance"], f"{w}.radiance", nonnegative=True)), None, scale)
+            radiance = _vec3(spec["radiance"], f"{w}.radiance", nonnegative=True)
+            return EnvironmentLight(_tensor(radiance, device), None, scale)
         from nrc.io.exr import read_exr
 
         img, _ = read_exr(_existing_file(spec["path"], f"{w}.path"))
         if not np.isfinite(img).all() or (img < 0).any():
             raise ConfigError(f"{w}.path: environment image must be finite and non-negative")
-        return EnvironmentLight(None, t(img), scale)
+        return EnvironmentLight(None, _tensor(img, device), scale)
     raise ConfigError(f"{w}.type must be one of {', '.join(LIGHT_TYPES)}, got {kind!r}")
 
 
