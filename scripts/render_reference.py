@@ -9,7 +9,11 @@ Usage::
     python scripts/render_reference.py scene=sun scene.integrator.spp=4096 --chunk-spp 64 \\
         [--out data/references/sun.exr] [--no-progress]
 
-Without ``--out`` the reference goes to ``data/references/reference_<config hash prefix>.exr``.
+Without ``--out`` the reference goes to ``data/references/reference_<scene hash prefix>_<spp>spp.exr``
+(the name ``scripts/speed_vs_error.py`` looks for). The EXR's ``A`` channel is the medium alpha
+(``1 -`` camera-ray transmittance) and its header holds ``spp``, ``seed``, ``config_hash``, ``scene_hash``
+and ``rel_mse_floor`` (the relative MSE the reference's own noise adds to any comparison with it).
+A tqdm bar over chunks shows the elapsed time and the ETA.
 """
 
 from __future__ import annotations
@@ -25,9 +29,14 @@ sys.path.insert(0, str(REPO))
 
 from nrc.app import CONF_DIR, _absolute_paths  # noqa: E402
 from nrc.errors import NRCError  # noqa: E402
-from nrc.render.reference import config_hash, render_reference  # noqa: E402
+from nrc.render.reference import read_reference, render_reference, scene_hash  # noqa: E402
 
 DEFAULT_DIR = REPO / "data" / "references"
+
+
+def default_reference_path(cfg, spp: int) -> Path:
+    """``data/references/reference_<scene hash[:12]>_<spp>spp.exr``."""
+    return DEFAULT_DIR / f"reference_{scene_hash(cfg)[:12]}_{int(spp)}spp.exr"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -41,12 +50,14 @@ def main(argv: list[str] | None = None) -> int:
         cfg = compose(config_name="config", overrides=overrides)
     try:
         _absolute_paths(cfg)
-        out = args.out or DEFAULT_DIR / f"reference_{config_hash(cfg)[:12]}.exr"
+        out = args.out or default_reference_path(cfg, int(cfg.scene.integrator.spp))
         render_reference(cfg, out, args.chunk_spp, int(cfg.scene.integrator.spp), progress=not args.no_progress)
     except NRCError as exc:
         print(f"render_reference: error: {exc}", file=sys.stderr)
         return 2
-    print(f"wrote {out}")
+    ref = read_reference(out)
+    print(f"wrote {out} (rel_mse_floor: all {ref.attrs['rel_mse_floor']:.3g}, "
+          f"medium {ref.attrs['rel_mse_floor_medium']:.3g})")
     return 0
 
 

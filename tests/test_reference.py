@@ -8,8 +8,16 @@ import pytest
 from conftest import compose
 from nrc.errors import ConfigError, NRCError
 from nrc.io import read_exr
+from nrc.metrics import medium_mask
 from nrc.render.pt import PathTracer
-from nrc.render.reference import checkpoint_path, config_hash, render_reference
+from nrc.render.reference import (
+    checkpoint_path,
+    config_hash,
+    medium_alpha,
+    read_reference,
+    render_reference,
+    scene_hash,
+)
 from nrc.scene import load_scene
 
 TINY = [
@@ -27,11 +35,11 @@ def full(tmp_path_factory) -> tuple[np.ndarray, dict]:
     assert not checkpoint_path(out).exists()
     rgb, attrs = read_exr(out)
     np.testing.assert_array_equal(rgb, image)
-    return image, attrs
+    return image, attrs, out
 
 
 def test_header_has_spp_and_config_hash(full):
-    _, attrs = full
+    _, attrs, _ = full
     assert attrs["spp"] == TOTAL and attrs["seed"] == 3
     assert attrs["config_hash"] == config_hash(compose(TINY))
 
@@ -44,6 +52,34 @@ def test_reference_is_the_mean_of_chunks_with_consecutive_seeds(full):
         chunks.append(PathTracer(load_scene(cfg.scene), cfg).render().image.astype(np.float64))
     np.testing.assert_allclose(full[0], np.mean(chunks, axis=0), rtol=1e-6, atol=1e-7)
     assert full[0].mean() > 0
+    # the header's noise floor: mean over pixels of Var(chunk) / n_chunks / (r^2 + 0.01)
+    chunks = np.stack(chunks)
+    n = len(chunks)
+    term = chunks.var(0, ddof=1) / n / (chunks.mean(0) ** 2 + 0.01)
+    assert full[1]["rel_mse_floor"] == pytest.approx(term.mean(), rel=1e-4)
+    m = medium_mask(read_reference(full[2]).alpha)
+    assert full[1]["rel_mse_floor_medium"] == pytest.approx(term[m].mean(), rel=1e-4)
+
+
+def test_reference_stores_the_medium_alpha(full):
+    ref = read_reference(full[2])
+    np.testing.assert_array_equal(ref.image, full[0])
+    assert ref.alpha.shape == full[0].shape[:2] and ref.alpha.dtype == np.float32
+    assert 0.0 <= ref.alpha.min() and ref.alpha.max() <= 1.0
+    cfg = compose(TINY)
+    np.testing.assert_allclose(ref.alpha, medium_alpha(load_scene(cfg.scene)), atol=1e-6)
+    m = medium_mask(ref.alpha)
+    assert 0 < m.sum() <= m.size
+    assert ref.attrs["scene_hash"] == scene_hash(cfg) and ref.rel_mse_floor > 0
+
+
+def test_alpha_is_zero_where_the_camera_misses_the_medium():
+    # the camera looks away from the cloud: no pixel sees the medium
+    cfg = compose(TINY + ["scene.camera.look_at=[0,-2,400]"])
+    alpha = medium_alpha(load_scene(cfg.scene))
+    assert alpha.max() == 0.0 and not medium_mask(alpha).any()
+    alpha = medium_alpha(load_scene(compose(TINY).scene))
+    assert alpha.max() > 0.5
 
 
 def test_interrupted_and_resumed_run_is_bitwise_identical(full, tmp_path):
@@ -73,6 +109,13 @@ def test_config_hash_ignores_spp_and_seed_only():
     assert config_hash(compose(TINY + ["scene.integrator.spp=99", "scene.integrator.seed=7"])) == base
     assert config_hash(compose(TINY + ["transmittance=track_length"])) != base
     assert config_hash(compose(TINY + ["scene.integrator.max_scatter=3"])) != base
+
+
+def test_scene_hash_depends_on_the_scene_only():
+    base = scene_hash(compose(TINY))
+    assert scene_hash(compose(TINY + ["scene.integrator.spp=99", "scene.integrator.seed=7"])) == base
+    assert scene_hash(compose(TINY + ["transmittance=track_length", "renderer.slots=1024"])) == base
+    assert scene_hash(compose(TINY + ["scene.volume.density_scale=0.3"])) != base
 
 
 def test_bad_chunking_and_renderer_are_config_errors(tmp_path):

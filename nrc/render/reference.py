@@ -4,8 +4,21 @@ A reference of ``total_spp`` samples per pixel is the mean of ``total_spp / chun
 ``pt`` renders of ``chunk_spp`` spp each; chunk ``i`` uses seed ``scene.integrator.seed + i``. After every
 chunk the running sum (float64) is checkpointed to ``<out>.ckpt.npz`` (written atomically), so a killed
 run resumes where it stopped and produces bitwise the same image as an uninterrupted run (on the same
-device). The final EXR carries header attributes ``spp`` (int), ``seed`` (base seed, int) and
-``config_hash`` (see :func:`config_hash`); the checkpoint is then deleted.
+device). The final EXR carries header attributes ``spp`` (int), ``seed`` (base seed, int),
+``config_hash`` (see :func:`config_hash`) and ``scene_hash`` (see :func:`scene_hash`); the checkpoint is
+then deleted.
+
+The EXR also stores the **medium mask** as its ``A`` channel: ``alpha = 1 - T``, the transmittance ``T``
+of the camera rays through the medium (no scattering; midpoint quadrature with half-voxel steps, averaged
+over a 2 x 2 stratified grid of rays per pixel). ``nrc.metrics.medium_mask(alpha)`` turns it into the
+pixel set "where the reference sees the medium". :func:`read_reference` returns image, alpha and header.
+
+**The reference's own noise.** The checkpoint also accumulates the per-pixel sum of squares of the
+chunks, so the variance of the reference mean is known: ``Var(r_hat) = var_chunks / n_chunks``. A
+render ``x`` independent of the reference has ``E[(x - r_hat)^2] = E[(x - r)^2] + Var(r_hat)``, so every
+relative MSE measured against the reference is inflated by about ``rel_mse_floor = mean over pixels of
+Var(r_hat) / (r_hat^2 + 0.01)``, stored in the header (``rel_mse_floor`` over all pixels,
+``rel_mse_floor_medium`` over the medium mask; ``-1`` with a single chunk). Subtract it or state it.
 """
 
 from __future__ import annotations
@@ -18,12 +31,15 @@ import os
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
+import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from nrc.app import resolve_device
 from nrc.errors import ConfigError, NRCError
-from nrc.io import write_exr
+from nrc.io import read_exr, write_exr
+from nrc.render.preview import camera_transmittance
 from nrc.render.pt import PathTracer
 from nrc.scene import Scene, load_scene
 
@@ -45,16 +61,107 @@ def config_hash(cfg: DictConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+def scene_hash(cfg: DictConfig) -> str:
+    """sha256 (hex) of the resolved ``scene`` section alone, without ``integrator.spp`` and ``integrator.seed``.
+
+    Every unbiased estimator (any ``pt`` backend, any unbiased transmittance estimator) converges to the
+    same image, so a reference is valid for every config with the same scene hash.
+    """
+    scene = copy.deepcopy(OmegaConf.to_container(cfg.scene, resolve=True))
+    for key in CHUNKED_KEYS:
+        scene.get("integrator", {}).pop(key, None)
+    return hashlib.sha256(json.dumps(scene, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+@dataclasses.dataclass
+class Reference:
+    """A reference read back from its EXR: ``image`` (H, W, 3), ``alpha`` (H, W) or ``None``, header ``attrs``."""
+
+    image: np.ndarray
+    alpha: np.ndarray | None
+    attrs: dict
+
+    @property
+    def rel_mse_floor(self) -> float | None:
+        v = self.attrs.get("rel_mse_floor")
+        return None if v is None or v < 0 else float(v)
+
+    @property
+    def rel_mse_floor_medium(self) -> float | None:
+        v = self.attrs.get("rel_mse_floor_medium")
+        return None if v is None or v < 0 else float(v)
+
+
+def medium_alpha(scene: Scene, chunk: int = 1 << 16) -> np.ndarray:
+    """``(H, W)`` float32 ``1 - T`` of the camera rays (2 x 2 stratified rays per pixel, no scattering)."""
+    cam, dev = scene.camera, scene.device
+    step = 0.5 * scene.grid.voxel_size
+    alpha = torch.zeros(cam.num_pixels, dtype=torch.float32, device=dev)
+    offsets = [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]
+    with torch.no_grad():
+        for s in range(0, cam.num_pixels, chunk):
+            pix = torch.arange(s, min(s + chunk, cam.num_pixels), device=dev)
+            acc = torch.zeros(len(pix), device=dev)
+            for ox, oy in offsets:
+                jitter = torch.tensor([[ox, oy]], device=dev).expand(len(pix), 2)
+                o, d = cam.generate_rays(pix, jitter)
+                acc += 1.0 - camera_transmittance(scene, o, d, step)
+            alpha[pix] = acc / len(offsets)
+    return alpha.reshape(cam.height, cam.width).cpu().numpy().clip(0.0, 1.0)
+
+
+def write_reference_exr(path: str | Path, image: np.ndarray, alpha: np.ndarray | None, attrs: dict) -> None:
+    """Write RGB (+ ``A`` = ``alpha`` when given) float32 with header ``attrs`` (ZIP compression)."""
+    if alpha is None:
+        write_exr(path, image, attrs)
+        return
+    rgba = np.concatenate([np.asarray(image, np.float32), np.asarray(alpha, np.float32)[..., None]], axis=-1)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **attrs}
+    with OpenEXR.File(header, {"RGBA": np.ascontiguousarray(rgba)}) as f:
+        f.write(str(path))
+
+
+def read_reference(path: str | Path) -> Reference:
+    """Read a reference EXR: RGB, the ``A`` channel as alpha (``None`` if absent) and the header attributes."""
+    image, attrs = read_exr(path)
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = f.channels()
+        alpha = np.asarray(ch["A"].pixels, dtype=np.float32) if "A" in ch else None
+    return Reference(image, alpha, attrs)
+
+
+def reference_noise_floor(total: np.ndarray, total_sq: np.ndarray, n: int, alpha: np.ndarray | None,
+                          eps: float = 0.01) -> tuple[float, float]:
+    """``(all, medium)`` mean of ``Var(r_hat) / (r_hat^2 + eps)``; ``(-1, -1)`` when ``n < 2``."""
+    if n < 2:
+        return -1.0, -1.0
+    mean = total / n
+    var_chunk = np.maximum(total_sq / n - mean**2, 0.0) * n / (n - 1)
+    term = var_chunk / n / (mean**2 + eps)
+    med = -1.0
+    if alpha is not None:
+        from nrc.metrics import medium_mask
+
+        m = medium_mask(alpha)
+        med = float(term[m].mean()) if m.any() else -1.0
+    return float(term.mean()), med
+
+
 def checkpoint_path(out: str | Path) -> Path:
     """Where the checkpoint of a reference written to ``out`` lives: ``<out>.ckpt.npz``."""
     out = Path(out)
     return out.with_name(out.name + ".ckpt.npz")
 
 
-def _load_checkpoint(path: Path, chash: str, chunk_spp: int, seed: int, n_chunks: int) -> tuple[np.ndarray | None, int]:
-    """The running sum and number of chunks done from ``path`` (``(None, 0)`` if absent); checks it matches."""
+def _load_checkpoint(
+    path: Path, chash: str, chunk_spp: int, seed: int, n_chunks: int
+) -> tuple[np.ndarray | None, np.ndarray | None, int]:
+    """The running sum, sum of squares and number of chunks done from ``path`` (``(None, None, 0)`` if absent).
+
+    Checks that the checkpoint matches the config and chunking.
+    """
     if not path.is_file():
-        return None, 0
+        return None, None, 0
     with np.load(path) as ck:
         saved = {k: ck[k] for k in ck.files}
     if str(saved["config_hash"]) != chash:
@@ -70,14 +177,18 @@ def _load_checkpoint(path: Path, chash: str, chunk_spp: int, seed: int, n_chunks
     done = int(saved["chunks_done"])
     if done > n_chunks:
         raise NRCError(f"checkpoint {path} already holds {done} chunks, more than the {n_chunks} requested")
-    return saved["sum"], done
+    if "sum_sq" not in saved:
+        raise NRCError(f"checkpoint {path} is from an older version (no sum of squares); delete it")
+    return saved["sum"], saved["sum_sq"], done
 
 
-def _save_checkpoint(path: Path, total: np.ndarray, done: int, chash: str, chunk_spp: int, seed: int) -> None:
+def _save_checkpoint(
+    path: Path, total: np.ndarray, total_sq: np.ndarray, done: int, chash: str, chunk_spp: int, seed: int
+) -> None:
     """Write the checkpoint atomically (a kill mid-write leaves the previous one intact)."""
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
-        np.savez(f, sum=total, chunks_done=done, config_hash=chash, chunk_spp=chunk_spp, seed=seed)
+        np.savez(f, sum=total, sum_sq=total_sq, chunks_done=done, config_hash=chash, chunk_spp=chunk_spp, seed=seed)
     os.replace(tmp, path)
 
 
@@ -120,19 +231,28 @@ def render_reference(
     n_chunks = _chunk_count(chunk_spp, total_spp)
     out, seed, chash = Path(out), int(cfg.scene.integrator.seed), config_hash(cfg)
     ckpt = checkpoint_path(out)
-    total, done = _load_checkpoint(ckpt, chash, chunk_spp, seed, n_chunks)
+    total, total_sq, done = _load_checkpoint(ckpt, chash, chunk_spp, seed, n_chunks)
     scene = load_scene(cfg.scene, resolve_device(cfg.get("device", "cpu")))
     out.parent.mkdir(parents=True, exist_ok=True)
     end = n_chunks if stop_after is None else min(n_chunks, done + stop_after)
+    # tqdm shows elapsed time and an ETA from the chunk rate
     with tqdm(total=n_chunks, initial=done, unit="chunk", desc=f"reference {out.name}", disable=not progress) as bar:
         for i in range(done, end):
             image = _render_chunk(scene, cfg, chunk_spp, seed + i)
             total = image if total is None else total + image
-            _save_checkpoint(ckpt, total, i + 1, chash, chunk_spp, seed)
+            total_sq = image**2 if total_sq is None else total_sq + image**2
+            _save_checkpoint(ckpt, total, total_sq, i + 1, chash, chunk_spp, seed)
             bar.update(1)
     if end < n_chunks:
         return None
     reference = (total / n_chunks).astype(np.float32)
-    write_exr(out, reference, {"spp": int(total_spp), "seed": seed, "config_hash": chash})
+    alpha = medium_alpha(scene)
+    floor_all, floor_med = reference_noise_floor(total, total_sq, n_chunks, alpha)
+    attrs = {
+        "spp": int(total_spp), "seed": seed, "config_hash": chash, "scene_hash": scene_hash(cfg),
+        "chunk_spp": int(chunk_spp), "rel_mse_floor": floor_all, "rel_mse_floor_medium": floor_med,
+        "alpha": "A channel: 1 - camera-ray transmittance through the medium",
+    }
+    write_reference_exr(out, reference, alpha, attrs)
     ckpt.unlink()
     return reference
