@@ -39,13 +39,16 @@ def resolve_device(name: str) -> torch.device:
 
 
 def _absolute_paths(cfg: DictConfig) -> None:
-    """Resolve relative file paths in the scene against the directory the job was launched from."""
+    """Resolve relative file paths (scene files, renderer reference/resume) against the directory the job was launched from."""
     vol = cfg.scene.volume
     if vol.get("path"):
         vol.path = hydra.utils.to_absolute_path(vol.path)
     for light in cfg.scene.get("lights") or []:
         if light.get("path"):
             light.path = hydra.utils.to_absolute_path(light.path)
+    for key in ("reference", "resume"):
+        if cfg.renderer.get(key):
+            cfg.renderer[key] = hydra.utils.to_absolute_path(cfg.renderer[key])
 
 
 def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
@@ -59,6 +62,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     scene = load_scene(cfg.scene, device)
     t_load = time.perf_counter() - t0
     renderer = make_renderer(cfg.renderer.name, scene, cfg)
+    if hasattr(renderer, "attach_output"):  # renderers with logs and checkpoints (nrc) write them to the run dir
+        renderer.attach_output(out_dir)
     result = renderer.render(progress=True)
     image = np.nan_to_num(result.image, nan=0.0, posinf=0.0, neginf=0.0)
     out_dir.mkdir(parents=True, exist_ok=True)

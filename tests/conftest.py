@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -75,3 +76,12 @@ def spike_grid():
     D = torch.zeros(7, 7, 7)
     D[3, 3, 3] = 1.0
     return DensityGrid(D, center=(0, 0, 0), diagonal=2.0, density_scale=50.0)
+
+
+def block_stats(images: list[np.ndarray], block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard error of block-averaged images over independent renders ``(H, W, 3)`` each."""
+    stack = np.stack(images)  # (R, H, W, 3)
+    r, h, w, c = stack.shape
+    blocks = stack[:, : h // block * block, : w // block * block].reshape(r, h // block, block, w // block, block, c)
+    per_render = blocks.mean(axis=(2, 4))
+    return per_render.mean(0), per_render.std(0, ddof=1) / np.sqrt(r)

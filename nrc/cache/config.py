@@ -99,6 +99,18 @@ class ConfigReader:
             raise ConfigError(f"{self.key(name)} must be one of {sorted(canonical.values())}, got {value!r}")
         return canonical[value.lower()]
 
+    def get_raw(self, name: str, default: Any = None) -> Any:
+        """The value of ``name`` as it is (``default`` when absent or null), for values the caller checks."""
+        value = self._get(name)
+        return default if value is None else value
+
+    def get_optional_str(self, name: str) -> str | None:
+        """A string (e.g. a file path) or ``None`` when absent or null."""
+        value = self._get(name)
+        if value is not None and not isinstance(value, str):
+            raise ConfigError(f"{self.key(name)} must be a string or null, got {value!r}")
+        return value
+
     def block(self, name: str) -> ConfigReader:
         """The sub-block ``name`` (an empty block when absent)."""
         return ConfigReader(self._get(name), self.key(name))

@@ -1,0 +1,56 @@
+"""Per-frame logging of the NRC renderer: TensorBoard scalars and images, and the run's history.
+
+TensorBoard tags: ``loss/step`` (every training step), ``loss/frame`` (mean per frame), ``time/<stage>``
+for ``trace``, ``infer``, ``train`` and ``frame`` (seconds), ``error/rel_mse`` and ``error/mse`` when a
+reference is given, and ``image/frame`` / ``image/output`` (tone-mapped) every ``image_every`` frames.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nrc.io.preview import tonemap
+
+
+class FrameLog:
+    """Collects per-frame statistics (``history``) and mirrors them to TensorBoard when ``log_dir`` is set."""
+
+    def __init__(self, log_dir: Path | None, image_every: int, exposure: float = 1.0) -> None:
+        self.history: dict[str, list[Any]] = {}
+        self.image_every = image_every
+        self.exposure = exposure
+        self.writer = None
+        if log_dir is not None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(log_dir=str(log_dir))
+
+    def steps(self, first_step: int, losses: list[float]) -> None:
+        if self.writer is not None:
+            for i, loss in enumerate(losses):
+                self.writer.add_scalar("loss/step", loss, first_step + i)
+
+    def frame(self, frame: int, stats: dict[str, Any], images: dict[str, np.ndarray]) -> None:
+        """Record the scalars of ``stats`` (per-frame lists in :attr:`history`) and log them."""
+        for key, value in stats.items():
+            self.history.setdefault(key, []).append(value)
+        if self.writer is None:
+            return
+        for key, value in stats.items():
+            if key.startswith("time_") and key.endswith("_s"):
+                self.writer.add_scalar(f"time/{key[5:-2]}", value, frame)
+            elif key in ("loss", "rel_mse", "mse") and value is not None:
+                self.writer.add_scalar(f"loss/frame" if key == "loss" else f"error/{key}", value, frame)
+        if self.image_every and frame % self.image_every == 0:
+            for name, img in images.items():
+                self.writer.add_image(f"image/{name}", tonemap(img, self.exposure), frame, dataformats="HWC")
+
+    def load(self, history: dict[str, list[Any]]) -> None:
+        self.history = {k: list(v) for k, v in history.items()}
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()

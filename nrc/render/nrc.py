@@ -1,0 +1,269 @@
+"""``renderer=nrc``: neural radiance caching, rendered frame after frame like a real-time renderer.
+
+Each frame (``frames`` in the root config):
+
+1. **trace** (:mod:`nrc.render.nrc_paths`): ``spp`` render paths per pixel, terminated into the cache by
+   ``renderer.termination``, and one self-training path per training pixel, in one wavefront;
+2. **infer** (:mod:`nrc.render.inference_filter`): the cache (EMA weights, as trained up to the previous
+   frame) is queried at every termination, in batches of ``inference.batch_size`` query slots; batches
+   without a query are skipped;
+3. **train**: training targets by the backward recurrence (:mod:`nrc.render.training_set`), the batch
+   filter (``batch_filter`` group) picks the batches of the training image to train, invalid records are
+   replaced from the ring buffer of earlier frames, one Adam step per batch, then the frame's valid
+   records enter the ring buffer.
+
+The output is the last frame's image, or the mean over frames with ``renderer.accumulate``. With a
+``renderer.reference`` EXR every frame's relative MSE is logged. A checkpoint (cache weights, Adam, EMA,
+ring buffer, accumulation, history) is written to ``checkpoint.pt`` in the run directory every
+``checkpoint_every`` frames and at the end; ``renderer.resume=<path>`` continues from one, and because
+every frame draws from its own generator seeded by ``(seed, frame)`` a resumed run continues the loss
+curve exactly as the uninterrupted run would have.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import Tensor
+from tqdm import tqdm
+
+from nrc.cache.radiance_cache import build_radiance_cache
+from nrc.errors import ConfigError
+from nrc.render.batch_filter import make_batch_filter
+from nrc.render.camera import Camera
+from nrc.render.frame_log import FrameLog
+from nrc.render.inference_filter import filtered_query
+from nrc.render.nrc_paths import NRCPathTracer, PathSet
+from nrc.render.nrc_settings import NRCSettings
+from nrc.render.result import RenderResult
+from nrc.render.ring_buffer import RingBuffer, TrainingRecords
+from nrc.render.sampler import RandomSource
+from nrc.render.training_set import frame_records, training_positions, training_targets
+from nrc.scene import Scene
+from nrc.transport.light_sampling import LightSampler
+from nrc.transport.lights import DirectionalLight
+from nrc.transport.transmittance import make_transmittance
+from nrc.volume.majorant import MajorantGrid
+
+FrameCallback = Callable[[int, np.ndarray, np.ndarray, dict[str, Any]], None]
+
+
+def rotation_y(degrees: float, device: torch.device) -> Tensor:
+    """``(3, 3)`` rotation about world +y (right-handed) by ``degrees``."""
+    a = math.radians(degrees)
+    c, s = math.cos(a), math.sin(a)
+    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float32, device=device)
+
+
+class NRCRenderer:
+    """The NRC frame loop (see the module docstring).
+
+    Args:
+        scene: the validated scene.
+        cfg: the app config (uses ``renderer``, ``frames``, ``cache``, ``encoding``, ``extra_inputs``,
+            ``batch_filter``, ``transmittance``, ``exposure``).
+        cache: a radiance cache to use instead of building one from the config (tests inject stubs).
+    """
+
+    name = "nrc"
+
+    def __init__(self, scene: Scene, cfg: DictConfig, cache: Any = None) -> None:
+        self.scene = scene
+        self.device = scene.device
+        self.settings = st = NRCSettings.from_config(cfg.renderer)
+        self.frames = int(cfg.get("frames", 1))
+        if self.frames < 1:
+            raise ConfigError(f"frames must be >= 1, got {self.frames}")
+        self.exposure = float(cfg.get("exposure", 1.0))
+        for group in ("cache", "encoding", "extra_inputs", "batch_filter"):
+            if cache is not None and group != "batch_filter":
+                continue
+            if cfg.get(group) is None:
+                raise ConfigError(f"renderer=nrc needs the config group '{group}' (see conf/config.yaml)")
+        self.cache = cache if cache is not None else build_radiance_cache(
+            cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed)
+        self.batch_filter = make_batch_filter(cfg.batch_filter)
+        tr = st.training
+        self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
+        self.ring = RingBuffer(tr.ring_buffer, self.device)
+        brick = MajorantGrid.auto_brick(scene.grid) if st.brick == "auto" else int(st.brick)
+        majorants = MajorantGrid(scene.grid, brick)
+        tracking = majorants if st.free_flight == "brick" else MajorantGrid(scene.grid, 0)
+        self.transmittance = make_transmittance(cfg.get("transmittance"))
+        self.tracer = NRCPathTracer(scene, majorants, tracking, self.transmittance, st.termination,
+                                    tr.records_per_path, tr.extra_vertices, st.slots, st.shadow_batch)
+        self.lights = LightSampler(scene.lights, self.device)
+        self.reference = self._load_reference(st.reference)
+        self.out_dir: Path | None = None
+        self.config_yaml = OmegaConf.to_yaml(cfg) if isinstance(cfg, DictConfig) else ""
+
+    def attach_output(self, out_dir: Path) -> None:
+        """The run directory: TensorBoard logs (``tensorboard/``) and ``checkpoint.pt`` go there."""
+        self.out_dir = Path(out_dir)
+
+    def _load_reference(self, path: str | None) -> np.ndarray | None:
+        if path is None:
+            return None
+        from nrc.io import read_exr
+
+        if not Path(path).is_file():
+            raise ConfigError(f"renderer.reference: no such file {path}")
+        ref, _ = read_exr(path)
+        cam = self.scene.camera
+        if ref.shape[:2] != (cam.height, cam.width):
+            raise ConfigError(f"renderer.reference is {ref.shape[1]}x{ref.shape[0]}, the camera renders "
+                              f"{cam.width}x{cam.height}")
+        return ref[..., :3].astype(np.float32)
+
+    # ------------------------------------------------------------------ per-frame scene state
+    def frame_camera(self, frame: int) -> Camera:
+        """The camera of ``frame`` (orbiting the box centre about world +y with ``animate.mode=orbit``)."""
+        cam = self.scene.camera
+        if self.settings.animate != "orbit" or frame == 0:
+            return cam
+        rot = rotation_y(self.settings.degrees_per_frame * frame, self.device)
+        centre = self.scene.grid.box.center
+        return replace(cam, position=rot @ (cam.position - centre) + centre, forward=rot @ cam.forward,
+                       right=rot @ cam.right, up=rot @ cam.up)
+
+    def frame_lights(self, frame: int) -> LightSampler:
+        """The lights of ``frame`` (directional lights rotating about world +y with ``animate.mode=sun``)."""
+        if self.settings.animate != "sun" or frame == 0:
+            return self.lights
+        rot = rotation_y(self.settings.degrees_per_frame * frame, self.device)
+        return LightSampler(tuple(replace(lt, direction=rot @ lt.direction) if isinstance(lt, DirectionalLight)
+                                  else lt for lt in self.scene.lights), self.device)
+
+    # ------------------------------------------------------------------ one frame
+    def frame_rng(self, frame: int) -> RandomSource:
+        """The random numbers of ``frame``: a generator seeded by ``(integrator.seed, frame)``."""
+        return RandomSource.seeded(self.scene.integrator.seed * 1_000_003 + frame, self.device)
+
+    def render_frame(self, frame: int) -> tuple[Tensor, dict[str, Any], list[float]]:
+        """Trace, infer and train one frame; returns its image ``(H, W, 3)``, its statistics and the losses."""
+        st, scene, tr = self.settings, self.scene, self.settings.training
+        rng = self.frame_rng(frame)
+        camera = self.frame_camera(frame)
+        t0 = time.perf_counter()
+        offset = rng.rand(1, 2)[0]
+        train_xy = training_positions(self.train_order, tr.width, tr.height, camera.width, camera.height, offset)
+        unbiased = rng.rand(tr.n_paths, 1)[:, 0] < tr.unbiased_fraction
+        ps = PathSet(camera, scene.integrator.spp, train_xy, unbiased)
+        trace = self.tracer.trace(ps, self.frame_lights(frame), rng)
+        t1 = time.perf_counter()
+
+        values, infer_counts = filtered_query(self.cache.query, trace.query_x, trace.query_d, trace.query_pid,
+                                              ps.n_render + ps.n_train, st.inference_batch)
+        # Radiance is never negative: a linear output that dips below 0 (early frames) would otherwise
+        # darken the image and, through self-training, feed negative targets back into the cache.
+        values = torch.nan_to_num(values, nan=0.0, posinf=0.0).clamp(min=0.0)
+        acc = trace.acc
+        acc.index_add_(0, trace.query_dest, trace.query_w * values)
+        n_pix = trace.n_pixels
+        image = (acc[:n_pix] / ps.spp).reshape(camera.height, camera.width, 3)
+        if not bool(torch.isfinite(image).all()):
+            raise RuntimeError(f"frame {frame}: the NRC image has non-finite pixels")
+        t2 = time.perf_counter()
+
+        V = tr.records_per_path
+        targets = training_targets(acc[n_pix:n_pix + ps.n_train * V], ps.n_train, V, scene.albedo)
+        records, valid = frame_records(trace.rec_x, trace.rec_d, targets, trace.rec_valid)
+        mask = torch.zeros(tr.n_paths, dtype=torch.bool, device=self.device)
+        mask[self.train_order] = trace.scattered
+        batches = self.batch_filter.batches(mask.view(tr.height, tr.width))
+        losses = []
+        for a, b in batches:
+            batch = self.ring.fill(TrainingRecords(*(f[a * V:b * V] for f in records)), valid[a * V:b * V],
+                                   rng.generator)
+            losses.append(self.cache.train_step(*batch))
+        self.ring.push(records, valid)
+        t3 = time.perf_counter()
+
+        stats: dict[str, Any] = {
+            "time_trace_s": t1 - t0, "time_infer_s": t2 - t1, "time_train_s": t3 - t2, "time_frame_s": t3 - t0,
+            "loss": float(np.mean(losses)) if losses else None,
+            "train_batches": len(batches), "train_records_valid": int(valid.sum()),
+            "training_pixels_scattering": int(trace.scattered.sum()),
+            **trace.counts, **infer_counts,
+        }
+        return image, stats, losses
+
+    # ------------------------------------------------------------------ checkpoints
+    def _checkpoint(self, path: Path, frame: int, accum: Tensor, n_accum: int, log: FrameLog) -> None:
+        torch.save({"frame": frame, "cache": self.cache.state_dict(), "ring": self.ring.state_dict(),
+                    "accum": accum.cpu(), "n_accum": n_accum, "history": log.history,
+                    "config": self.config_yaml}, path)
+
+    def _resume(self, path: str, log: FrameLog) -> tuple[int, Tensor, int]:
+        if not Path(path).is_file():
+            raise ConfigError(f"renderer.resume: no such checkpoint {path}")
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        self.cache.load_state_dict(state["cache"])
+        self.ring.load_state_dict(state["ring"])
+        log.load(state["history"])
+        return int(state["frame"]), state["accum"].to(self.device), int(state["n_accum"])
+
+    # ------------------------------------------------------------------ the frame loop
+    def render(self, progress: bool = False, on_frame: FrameCallback | None = None) -> RenderResult:
+        """Run ``frames`` frames; ``on_frame(frame, image, output, stats)`` is called after each."""
+        st, cam = self.settings, self.scene.camera
+        log_dir = self.out_dir / "tensorboard" if (self.out_dir is not None and st.tensorboard) else None
+        log = FrameLog(log_dir, st.image_every, self.exposure)
+        accum = torch.zeros(cam.height, cam.width, 3, device=self.device)
+        start, n_accum = 0, 0
+        if st.resume is not None:
+            start, accum, n_accum = self._resume(st.resume, log)
+            if start >= self.frames:
+                raise ConfigError(f"renderer.resume: the checkpoint is at frame {start}, frames={self.frames}")
+        step = sum(log.history.get("train_batches", []))
+        output = accum
+        t_start = time.perf_counter()
+        for frame in tqdm(range(start, self.frames), disable=not progress, desc="nrc", unit="frame", leave=False):
+            image, stats, losses = self.render_frame(frame)
+            if st.accumulate:
+                accum += image
+                n_accum += 1
+                output = accum / n_accum
+            else:
+                output = image
+            out_np = output.cpu().numpy()
+            if self.reference is not None:
+                from nrc.metrics import mse, rel_mse
+
+                stats["rel_mse"] = rel_mse(out_np, self.reference)
+                stats["mse"] = mse(out_np, self.reference)
+            log.steps(step, losses)
+            step += len(losses)
+            log.frame(frame, stats, {"frame": image.cpu().numpy(), "output": out_np})
+            if on_frame is not None:
+                on_frame(frame, image.cpu().numpy(), out_np, stats)
+            if self.out_dir is not None and st.checkpoint_every and (frame + 1) % st.checkpoint_every == 0:
+                self._checkpoint(self.out_dir / "checkpoint.pt", frame + 1, accum, n_accum, log)
+        elapsed = time.perf_counter() - t_start
+        if self.out_dir is not None:
+            self._checkpoint(self.out_dir / "checkpoint.pt", self.frames, accum, n_accum, log)
+        log.close()
+        h = log.history
+        metrics: dict[str, Any] = {
+            "renderer": self.name, "frames": self.frames, "first_frame": start, "spp": self.scene.integrator.spp,
+            "accumulate": st.accumulate, "transmittance": self.transmittance.name,
+            "termination": st.termination.rule, "time_frames_s": elapsed,
+            "cache_parameters": self.cache.n_parameters if hasattr(self.cache, "n_parameters") else None,
+            "cache_steps": getattr(self.cache, "n_steps", None),
+            "cache_skipped_steps": getattr(self.cache, "n_skipped_steps", None),
+            "frame_times_s": h.get("time_frame_s", []), "time_trace_s": h.get("time_trace_s", []),
+            "time_infer_s": h.get("time_infer_s", []), "time_train_s": h.get("time_train_s", []),
+            "loss_per_frame": h.get("loss", []), "history": h,
+        }
+        if self.reference is not None:
+            metrics["final_rel_mse"] = h["rel_mse"][-1]
+            metrics["final_mse"] = h["mse"][-1]
+        return RenderResult(image=output.cpu().numpy(), metrics=metrics)

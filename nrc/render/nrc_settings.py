@@ -1,0 +1,88 @@
+"""Settings of ``renderer=nrc`` read from the ``renderer`` block (``conf/renderer/nrc.yaml``), validated.
+
+Every key is checked (type and range) and unknown keys are errors naming the key, like the cache's
+config blocks (:class:`nrc.cache.config.ConfigReader`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from nrc.cache.config import ConfigReader
+from nrc.errors import ConfigError
+from nrc.render.termination import Termination
+
+ANIMATIONS = ("none", "orbit", "sun")
+
+
+@dataclass(frozen=True)
+class TrainingSettings:
+    width: int  # training image width (training paths per row)
+    height: int  # training image height
+    records_per_path: int  # V
+    extra_vertices: int  # vertices a training path goes past the render path's stop
+    unbiased_fraction: float  # probability that a training path never terminates into the cache
+    ring_buffer: int  # records kept from earlier frames
+
+    @property
+    def n_paths(self) -> int:
+        return self.width * self.height
+
+
+@dataclass(frozen=True)
+class NRCSettings:
+    """Validated ``renderer`` block of the NRC renderer (key meanings in ``conf/renderer/nrc.yaml``)."""
+
+    slots: int
+    shadow_batch: int
+    brick: int | str
+    free_flight: str
+    termination: Termination
+    training: TrainingSettings
+    inference_batch: int
+    accumulate: bool
+    animate: str
+    degrees_per_frame: float
+    tensorboard: bool
+    image_every: int
+    checkpoint_every: int
+    reference: str | None
+    resume: str | None
+
+    @classmethod
+    def from_config(cls, renderer: Any) -> NRCSettings:
+        cfg = ConfigReader(renderer, "renderer")
+        cfg.get_choice("name", ["nrc"])
+        brick = cfg.get_raw("brick", "auto")
+        if brick != "auto" and (isinstance(brick, bool) or not isinstance(brick, int) or brick < 1):
+            raise ConfigError(f"renderer.brick must be 'auto' or an integer >= 1, got {brick!r}")
+        tr, inf, anim, log = cfg.block("training"), cfg.block("inference"), cfg.block("animate"), cfg.block("log")
+        settings = cls(
+            slots=cfg.get_int("slots", 1 << 16, lo=1),
+            shadow_batch=cfg.get_int("shadow_batch", 1 << 17, lo=1),
+            brick=brick,
+            free_flight=cfg.get_choice("free_flight", ["brick", "global"], "brick"),
+            termination=Termination.from_config(cfg.block("termination")),
+            training=TrainingSettings(
+                width=tr.get_int("width", 128, lo=1),
+                height=tr.get_int("height", 128, lo=1),
+                records_per_path=tr.get_int("records_per_path", 4, lo=1),
+                extra_vertices=tr.get_int("extra_vertices", 3, lo=0),
+                unbiased_fraction=tr.get_float("unbiased_fraction", 1 / 16, lo=0.0, hi=1.0),
+                ring_buffer=tr.get_int("ring_buffer", 1 << 18, lo=1),
+            ),
+            inference_batch=inf.get_int("batch_size", 1 << 14, lo=1),
+            accumulate=cfg.get_bool("accumulate", False),
+            animate=anim.get_choice("mode", ANIMATIONS, "none"),
+            degrees_per_frame=anim.get_float("degrees_per_frame", 2.0),
+            tensorboard=log.get_bool("tensorboard", True),
+            image_every=log.get_int("image_every", 10, lo=0),
+            checkpoint_every=cfg.get_int("checkpoint_every", 0, lo=0),
+            reference=cfg.get_optional_str("reference"),
+            resume=cfg.get_optional_str("resume"),
+        )
+        for block in (tr, inf, anim, log, cfg):
+            block.finish()
+        return settings
+

@@ -1,0 +1,239 @@
+"""The NRC renderer: estimator correctness (oracle and zero caches), hand-computed training targets,
+training positions, the inference filter, and a short online-training run with resume."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import block_stats, compose
+from nrc.render.inference_filter import filtered_query
+from nrc.render.nrc import NRCRenderer
+from nrc.render.pt import PathTracer
+from nrc.render.sampler import RandomSource
+from nrc.render.training_set import training_positions
+from nrc.scene import load_scene
+from nrc.transport.phase import hg_pdf, hg_sample
+
+SMALL = ["scene.volume.procedural.resolution=24", "scene.camera.width=16", "scene.camera.height=8"]
+NRC_SMALL = ["renderer.training.width=8", "renderer.training.height=8", "renderer.log.tensorboard=false"]
+
+
+class StubCache:
+    """A cache stand-in: ``fn(x, d)`` for queries; records training batches instead of learning."""
+
+    def __init__(self, fn):
+        self.fn = fn
+        self.batches = []
+
+    def query(self, x, d):
+        return self.fn(x, d)
+
+    def train_step(self, x, d, t):
+        self.batches.append((x.clone(), d.clone(), t.clone()))
+        return 0.0
+
+    def state_dict(self):
+        return {}
+
+
+def exit_distance(x: torch.Tensor, w: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """Distance from points inside the box along ``w`` to the box boundary."""
+    safe = torch.where(w == 0, torch.full_like(w, 1e-30), w)
+    t = torch.where(w > 0, (hi - x) / safe, torch.where(w < 0, (lo - x) / safe, torch.full_like(w, math.inf)))
+    return t.amin(-1)
+
+
+def exact_transmittance(grid, x: torch.Tensor, w: torch.Tensor, steps: int = 400) -> torch.Tensor:
+    """T along ``w`` from ``x`` to the box exit by midpoint quadrature (independent of the estimators)."""
+    length = exit_distance(x, w, grid.box.lo, grid.box.hi)
+    h = length / steps
+    tau = torch.zeros_like(length)
+    for k in range(steps):
+        tau += grid.sigma_t(x + ((k + 0.5) * h)[:, None] * w) * h
+    return torch.exp(-tau)
+
+
+def render_images(cfg_overrides: list[str], seeds: int, renderer: str, cache_fn=None) -> list[np.ndarray]:
+    images = []
+    for seed in range(seeds):
+        extra = NRC_SMALL if renderer == "nrc" else []
+        cfg = compose([f"renderer={renderer}", *cfg_overrides, *extra, f"scene.integrator.seed={seed}", "frames=1"])
+        scene = load_scene(cfg.scene)
+        if renderer == "pt":
+            images.append(PathTracer(scene, cfg).render().image)
+        else:
+            images.append(NRCRenderer(scene, cfg, cache=StubCache(cache_fn(scene))).render().image)
+    return images
+
+
+def assert_agree(a: list[np.ndarray], b: list[np.ndarray], block: int = 4) -> None:
+    """Block means agree within 4.5 standard errors (spread over independent renders; 8 blocks x 3 channels
+    with 8 renders each), image means within 4."""
+    m_a, se_a = block_stats(a, block)
+    m_b, se_b = block_stats(b, block)
+    z = (m_a - m_b) / np.maximum(np.sqrt(se_a**2 + se_b**2), 1e-6 * np.abs(m_b).max())
+    assert np.abs(z).max() < 4.5, f"max |z| = {np.abs(z).max():.2f}"
+    mean_a, mean_b = (np.array([im.mean() for im in ims]) for ims in (a, b))
+    se = np.sqrt((mean_a.var(ddof=1) + mean_b.var(ddof=1)) / len(a))
+    assert abs(mean_a.mean() - mean_b.mean()) < 4 * se
+    assert mean_b.mean() > 0
+
+
+def sun_oracle(scene):
+    """Exact ``L_s(x, d)`` at a path's last allowed vertex under one sun: single scattering towards the sun."""
+    (sun,) = scene.lights
+
+    def fn(x, d):
+        wi = (-sun.direction).expand_as(x)
+        T = exact_transmittance(scene.grid, x, wi)
+        return scene.albedo * sun.irradiance * (hg_pdf(scene.g, (d * wi).sum(-1)) * T)[:, None]
+
+    return fn
+
+
+SEEDS = 8
+
+
+def test_oracle_cache_makes_nrc_unbiased():
+    """Paths may stop only at their last allowed vertex (2), where the exact radiance is single scattering;
+    there they stop with probability 1/2 (and otherwise finish as the path tracer does). With that oracle
+    the NRC image equals the path tracer's within Monte Carlo error."""
+    common = [*SMALL, "scene=sun", "scene.integrator.max_scatter=2", "scene.volume.albedo=0.7", "scene.volume.g=0.5",
+              "scene.volume.density_scale=1.5"]
+    pt = render_images([*common, "scene.integrator.spp=16"], SEEDS, "pt")
+    nrc = render_images([*common, "scene.integrator.spp=16", "renderer.termination.min_vertices=2",
+                         "renderer.termination.p_continue=0.5"], SEEDS, "nrc", sun_oracle)
+    assert_agree(nrc, pt)
+
+
+def test_zero_cache_is_a_truncated_path_tracer():
+    """Terminating at vertex m into a zero cache is the path tracer with max_scatter = m - 1 (sun and sky,
+    including the MIS-weighted sky reached from the last vertex)."""
+    common = [*SMALL, "scene=sun_sky", "scene.volume.albedo=0.9", "scene.integrator.spp=16"]
+    pt = render_images([*common, "scene.integrator.max_scatter=2"], SEEDS, "pt")
+    nrc = render_images([*common, "renderer.termination.min_vertices=3"], SEEDS, "nrc",
+                        lambda scene: lambda x, d: torch.zeros_like(x))
+    assert_agree(nrc, pt)
+
+
+class ConstantRandom(RandomSource):
+    """A scripted random stream: every uniform is ``value``."""
+
+    def __init__(self, value: float) -> None:
+        super().__init__(torch.Generator().manual_seed(0), "cpu")
+        self.value = value
+
+    def rand(self, n, k):
+        return torch.full((n, k), self.value)
+
+
+def test_training_targets_match_a_hand_computed_path(tmp_path):
+    """Constant medium, global majorant, every uniform 0.3: the training path is deterministic and its two
+    records carry a (NEE_1 + a (NEE_2 + C)) and a (NEE_2 + C)."""
+    np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
+    sigma, albedo, g, c, u = 0.08, 0.8, 0.6, torch.tensor([0.2, 0.3, 0.4]), 0.3
+    cfg = compose(["renderer=nrc", "scene=sun", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
+                   f"scene.volume.density_scale={sigma}", f"scene.volume.albedo={albedo}", f"scene.volume.g={g}",
+                   "scene.camera.width=1", "scene.camera.height=1", "scene.camera.position=[0,0,150]",
+                   "scene.camera.look_at=[0,0,0]", "scene.integrator.spp=1", "renderer.free_flight=global",
+                   "renderer.training.width=1", "renderer.training.height=1", "renderer.training.records_per_path=3",
+                   "renderer.training.extra_vertices=2", "transmittance=biased_raymarch", "batch_filter.n_batches=1",
+                   "renderer.log.tensorboard=false"])
+    scene = load_scene(cfg.scene)
+    cache = StubCache(lambda x, d: c.expand_as(x).clone())
+    r = NRCRenderer(scene, cfg, cache=cache)
+    r.frame_rng = lambda frame: ConstantRandom(u)
+    image, stats, _ = r.render_frame(0)
+
+    # The render path terminates at its first vertex: the pixel is the cache value (throughput 1).
+    torch.testing.assert_close(image.reshape(3), c)
+    # Hand-traced training path (camera ray through the pixel at jitter (u, u)).
+    cam, box = scene.camera, scene.grid.box
+    o, d0 = cam.generate_rays(torch.zeros(1, dtype=torch.long), torch.full((1, 2), u))
+    t0, _ = box.intersect(o, d0)
+    step = -math.log1p(-u) / sigma
+    x1 = o + (t0 + step)[:, None] * d0
+    d1, _ = hg_sample(g, d0, torch.full((1, 2), u))
+    x2 = x1 + step * d1
+    (sun,) = scene.lights
+    wi = -sun.direction[None]
+
+    def nee(x, d_in):
+        T = torch.exp(-sigma * exit_distance(x, wi, box.lo, box.hi))
+        return sun.irradiance * (hg_pdf(g, (d_in * wi).sum(-1)) * T)[:, None]
+
+    t2 = albedo * (nee(x2, d1) + c)
+    t1 = albedo * nee(x1, d0) + albedo * t2
+    (batch,) = cache.batches
+    x, d, t = batch
+    torch.testing.assert_close(x, torch.cat([x1, x2]), rtol=1e-5, atol=1e-4)
+    torch.testing.assert_close(d, torch.cat([d0, d1]), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(t, torch.cat([t1, t2]), rtol=1e-4, atol=1e-6)
+    assert stats["train_records_valid"] == 2 and stats["cache_queries"] == 2
+
+
+def test_training_positions_tile_the_image_on_both_axes():
+    """One training path per tile, x spacing from the width and y spacing from the height (all inside)."""
+    tw, th, w, h = 8, 4, 160, 90
+    order = torch.randperm(tw * th)
+    xy = training_positions(order, tw, th, w, h, torch.tensor([0.999, 0.999]))
+    assert bool((xy[:, 0] < w).all() and (xy[:, 1] < h).all() and (xy >= 0).all())
+    tile = torch.stack([xy[:, 0] // (w / tw), xy[:, 1] // (h / th)], 1).long()
+    torch.testing.assert_close(tile[:, 1] * tw + tile[:, 0], order)
+
+
+def test_inference_filter_skips_batches_without_queries():
+    calls = []
+
+    def query(x, d):
+        calls.append(len(x))
+        return x * 2
+
+    x = torch.arange(12, dtype=torch.float32).reshape(4, 3)
+    slot = torch.tensor([33, 1, 35, 2])  # batches of 10 slots: 0 and 3 hold queries, 1, 2 and 4 do not
+    values, counts = filtered_query(query, x, x, slot, 45, 10)
+    torch.testing.assert_close(values, 2 * x)
+    assert sorted(calls) == [2, 2]
+    assert counts == {"inference_batches": 5, "inference_batches_evaluated": 2, "inference_batches_skipped": 3,
+                      "cache_queries": 4}
+
+
+TRAIN = ["scene.volume.procedural.resolution=32", "scene.camera.width=32", "scene.camera.height=16",
+         "scene.camera.position=[0,-2,110]", "scene.integrator.spp=1", "scene.integrator.max_scatter=16",
+         "renderer.training.width=16", "renderer.training.height=16", "renderer.training.records_per_path=4",
+         "cache.network.n_neurons=32", "cache.network.n_hidden_layers=2", "encoding.position.n_levels=6",
+         "encoding.position.log2_hashmap_size=14", "encoding.position.base_resolution=4",
+         "renderer.log.image_every=5"]
+
+
+def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
+    """20 frames of online training lower the loss; resuming from the frame-10 checkpoint replays frames
+    10..19 exactly (every frame has its own seed; weights, Adam, EMA and ring buffer are restored)."""
+    import shutil
+
+    cfg = compose(["renderer=nrc", *TRAIN, "frames=20", "renderer.checkpoint_every=10"])
+    scene = load_scene(cfg.scene)
+    full = NRCRenderer(scene, cfg)
+    full.attach_output(tmp_path)
+
+    def keep_frame_10_checkpoint(frame, image, output, stats):
+        if frame == 10:  # checkpoint.pt was written after frame 9, i.e. at frame 10
+            shutil.copy(tmp_path / "checkpoint.pt", tmp_path / "at10.pt")
+
+    result = full.render(on_frame=keep_frame_10_checkpoint)
+    loss = np.array(result.metrics["loss_per_frame"])
+    assert len(loss) == 20 and np.isfinite(loss).all()
+    assert np.median(loss[-5:]) < 0.7 * np.median(loss[:5]), loss
+    assert np.isfinite(result.image).all() and result.image.mean() > 0
+    assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+
+    resumed = NRCRenderer(scene, compose(["renderer=nrc", *TRAIN, "frames=20", "renderer.log.tensorboard=false",
+                                          f"renderer.resume={tmp_path / 'at10.pt'}"]))
+    rest = resumed.render()
+    assert rest.metrics["first_frame"] == 10
+    np.testing.assert_allclose(rest.metrics["loss_per_frame"], loss, rtol=1e-5)
+    np.testing.assert_allclose(rest.image, result.image, rtol=1e-5, atol=1e-6)
