@@ -46,3 +46,27 @@ def test_app_reports_bad_input_in_one_line(tmp_path, override, message):
     assert proc.returncode == 2
     assert message in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+NRC_TINY = ["renderer=nrc", "frames=3", "renderer.training.width=8", "renderer.training.height=8",
+            "cache.network.n_neurons=16", "cache.network.n_hidden_layers=1", "encoding.position.n_levels=2",
+            "encoding.position.log2_hashmap_size=10", "renderer.log.image_every=1"]
+
+
+def test_app_runs_the_nrc_frame_loop(tmp_path):
+    """`python -m nrc renderer=nrc frames=N` writes the image, the per-frame metrics, TensorBoard logs and a
+    checkpoint that a second run resumes from."""
+    first = tmp_path / "first"
+    proc = run_app(first, *NRC_TINY)
+    assert proc.returncode == 0, proc.stderr
+    img, _ = read_exr(first / "image.exr")
+    assert img.shape == (8, 12, 3) and np.isfinite(img).all()
+    metrics = json.loads((first / "metrics.json").read_text())
+    assert metrics["renderer"] == "nrc" and len(metrics["loss_per_frame"]) == 3
+    assert len(metrics["time_trace_s"]) == len(metrics["time_infer_s"]) == len(metrics["time_train_s"]) == 3
+    assert list((first / "tensorboard").glob("events.out.tfevents.*"))
+    resumed = tmp_path / "resumed"
+    proc = run_app(resumed, *NRC_TINY, "frames=5", f"renderer.resume={first / 'checkpoint.pt'}")
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads((resumed / "metrics.json").read_text())
+    assert metrics["first_frame"] == 3 and len(metrics["loss_per_frame"]) == 5

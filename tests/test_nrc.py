@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from conftest import block_stats, compose
+from nrc.errors import ConfigError
 from nrc.render.inference_filter import filtered_query
 from nrc.render.nrc import NRCRenderer
 from nrc.render.pt import PathTracer
@@ -237,3 +238,23 @@ def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
     assert rest.metrics["first_frame"] == 10
     np.testing.assert_allclose(rest.metrics["loss_per_frame"], loss, rtol=1e-5)
     np.testing.assert_allclose(rest.image, result.image, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("renderer.termination.rule=depth", "renderer.termination.rule must be one of"),
+        ("renderer.termination.p_continue=1.0", "renderer.termination.p_continue must be < 1.0"),
+        ("renderer.training.records_per_path=0", "renderer.training.records_per_path must be >= 1"),
+        ("+renderer.training.frames=3", "renderer.training: unknown key(s) frames"),
+        ("batch_filter=quadtree", "batch_filter.depth=3 needs a training image"),
+        ("renderer.resume=missing.pt", "renderer.resume: no such checkpoint"),
+        ("renderer.reference=missing.exr", "renderer.reference: no such file"),
+        ("frames=0", "frames must be >= 1"),
+    ],
+)
+def test_bad_nrc_settings_name_the_key(override, message):
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.width=12", override])
+    with pytest.raises(ConfigError) as err:
+        NRCRenderer(load_scene(cfg.scene), cfg).render()
+    assert message in str(err.value)
