@@ -30,14 +30,26 @@ def test_config_files_present():
     assert {"none", "density", "gradient", "laplacian", "density_gradient", "all"} <= set(EXTRAS)
 
 
-def test_default_hashgrid_config_is_spindlers():
+def test_default_hashgrid_is_sized_to_the_grid():
+    """The default position hash grid ends at the density grid's resolution (``max_resolution: grid``)."""
     cfg = _compose("hashgrid_oneblob", "none")
-    cache = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, _grid(), "cpu", 0)
+    grid = DensityGrid(torch.rand(40, 24, 20), center=(0, 0, 0), diagonal=2.0, density_scale=1.0)
+    cache = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, grid, "cpu", 0)
     enc = cache.network.encoding.encodings[0]
     assert isinstance(enc, HashGridEncoding)
-    assert (enc.n_levels, enc.n_features_per_level, enc.hashmap_size) == (16, 2, 2**19)
-    assert enc.resolutions[:3] == (16, 32, 64)  # N_min 16, per-level scale 2
+    assert (enc.n_levels, enc.n_features_per_level, enc.hashmap_size) == (8, 2, 2**19)
+    assert enc.scales[0].item() + 1 == pytest.approx(16.0) and enc.scales[-1].item() + 1 == pytest.approx(40.0, rel=1e-5)
     assert cache.settings.n_neurons == 64 and cache.settings.n_hidden_layers == 5
+    # A grid coarser than N_min puts every level at N_min.
+    coarse = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, _grid(), "cpu", 0)
+    assert coarse.network.encoding.encodings[0].resolutions == (16,) * 8
+
+
+def test_spindler_hashgrid_config():
+    cfg = _compose("hashgrid_spindler_oneblob", "none", ("encoding.position.log2_hashmap_size=12",))
+    cache = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, _grid(), "cpu", 0)
+    enc = cache.network.encoding.encodings[0]
+    assert enc.n_levels == 16 and enc.resolutions[:3] == (16, 32, 64)  # N_min 16, per-level scale 2
 
 
 @pytest.mark.parametrize(

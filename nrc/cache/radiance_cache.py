@@ -164,7 +164,8 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
     inputs = InputBuilder(grid, direction_mode, extras)
     (pos_dims, pos_periodic), (dir_dims, dir_periodic) = inputs.column_blocks[:2]
     generator = torch.Generator().manual_seed(int(seed))
-    pos_enc, pos_adam = build_encoding(pos_cfg, pos_dims, pos_periodic, generator)
+    pos_enc, pos_adam = build_encoding(pos_cfg, pos_dims, pos_periodic, generator,
+                                       grid_resolution=max(grid.shape))
     dir_enc, dir_adam = build_encoding(dir_cfg, dir_dims, dir_periodic, generator, allowed=DIRECTION_OTYPES)
     parts = [(pos_enc, pos_dims), (dir_enc, dir_dims)]
     if extras.n_dims:

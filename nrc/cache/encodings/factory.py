@@ -10,7 +10,9 @@ Keys per ``otype`` (case-insensitive; unknown keys are errors):
 * ``HashGrid``: ``n_levels`` (>= 1), ``n_features_per_level`` (>= 1), ``log2_hashmap_size`` (1..24),
   ``base_resolution`` (>= 1), and exactly one of ``per_level_scale`` (>= 1) or ``max_resolution``
   (>= ``base_resolution``; then ``b = (N_max / N_min)^(1 / (L - 1))``), with the finest resolution
-  at most 2^20; optimiser keys ``lr``
+  at most 2^20. ``max_resolution: grid`` sizes the finest level to the medium: the density grid's
+  largest dimension in voxels, or ``base_resolution`` if that is larger (finer levels cannot resolve
+  anything the grid holds); optimiser keys ``lr``
   (default 1e-2) and ``eps`` (default 1e-15).
 """
 
@@ -41,6 +43,7 @@ def build_encoding(
     periodic: Sequence[bool],
     generator: torch.Generator,
     allowed: Sequence[str] = OTYPES,
+    grid_resolution: int | None = None,
 ) -> tuple[nn.Module, AdamSettings | None]:
     """Build the encoding described by ``cfg`` for ``n_dims`` inputs.
 
@@ -50,6 +53,7 @@ def build_encoding(
         periodic: per input column, whether it has period 1 (one-blob wraps those).
         generator: CPU generator for trainable initial values.
         allowed: the ``otype`` values valid at this place.
+        grid_resolution: the medium's largest grid dimension, for ``max_resolution: grid``.
 
     Returns:
         ``(module, adam)``: the encoding (with ``out_dim``) and, for trainable encodings, the Adam
@@ -66,12 +70,13 @@ def build_encoding(
     elif otype == "OneBlob":
         module = OneBlobEncoding(n_dims, cfg.get_int("n_bins", lo=1), wrap=periodic)
     else:
-        module, adam = _build_hashgrid(cfg, n_dims, generator)
+        module, adam = _build_hashgrid(cfg, n_dims, generator, grid_resolution)
     cfg.finish()
     return module, adam
 
 
-def _build_hashgrid(cfg: ConfigReader, n_dims: int, generator: torch.Generator) -> tuple[nn.Module, AdamSettings]:
+def _build_hashgrid(cfg: ConfigReader, n_dims: int, generator: torch.Generator,
+                    grid_resolution: int | None) -> tuple[nn.Module, AdamSettings]:
     if n_dims != 3:
         raise ConfigError(f"{cfg.key('otype')}: HashGrid encodes 3-D positions, not {n_dims}-D inputs")
     n_levels = cfg.get_int("n_levels", lo=1)
@@ -81,7 +86,12 @@ def _build_hashgrid(cfg: ConfigReader, n_dims: int, generator: torch.Generator) 
         raise ConfigError(f"{cfg.key('n_levels')} x 2^log2_hashmap_size must be < 2^31 (int32 rows)")
     base = cfg.get_int("base_resolution", lo=1)
     scale = cfg.get_float("per_level_scale", None, lo=1.0)
-    n_max = cfg.get_int("max_resolution", None, lo=base)
+    if cfg.get_raw("max_resolution") == "grid":
+        if grid_resolution is None:
+            raise ConfigError(f"{cfg.key('max_resolution')}: 'grid' needs the medium's grid (build the cache for a scene)")
+        n_max: int | None = max(grid_resolution, base)  # a grid coarser than N_min: every level at N_min
+    else:
+        n_max = cfg.get_int("max_resolution", None, lo=base)
     if (scale is None) == (n_max is None):
         raise ConfigError(f"{cfg.key('per_level_scale')}: give exactly one of per_level_scale and max_resolution")
     if scale is None:

@@ -15,7 +15,9 @@ Conventions (those of tiny-cuda-nn's ``HashGrid``):
   taken in int64 and masked with ``T - 1``: since ``T`` is a power of two dividing ``2^32``, this
   equals the uint32 wrap-around followed by ``mod T`` bit for bit.
 * Features are trilinearly interpolated between the 8 cell corners, initialised ``U(-1e-4, 1e-4)``
-  and trained (one ``(F, L, T)`` parameter; dense levels use the first ``(res_l + 1)^3`` rows).
+  and trained. One ``(F, R)`` parameter holds every level's rows back to back: ``(res_l + 1)^3`` rows
+  for a dense level, ``T`` for a hashed one (as tiny-cuda-nn sizes them), so coarse levels cost no
+  optimiser, EMA or gradient work for rows they can never index.
 
 Performance (CPU; measured with 2^16 points, one thread). All levels are processed at once with the
 ``N`` points innermost in every tensor (an inner dimension of 2 or 8 makes element-wise ops several
@@ -41,10 +43,10 @@ PRIMES = (1, 2654435761, 805459861)
 
 
 class _Interpolate(torch.autograd.Function):
-    """``out[f, l, n] = sum_c w[l, c, n] * table[f, l, idx[l, c, n]]`` with a scatter-add backward.
+    """``out[f, l, n] = sum_c w[l, c, n] * table[f, idx[l, c, n]]`` with a scatter-add backward.
 
-    Shapes: ``table (F, L, T)``, ``idx (L, 8, N)`` int32 rows of one level's table, already offset by
-    ``l * T`` into ``table[f].view(-1)``, ``w (L, 8, N)``; output ``(F, L, N)``. Every tensor keeps the
+    Shapes: ``table (F, R)``, ``idx (L, 8, N)`` int32 rows of ``table[f]`` (each level's offset
+    included), ``w (L, 8, N)``; output ``(F, L, N)``. Every tensor keeps the
     ``N`` points innermost, so all element-wise work runs on long contiguous rows (on CPU, an inner
     dimension of 2 or 8 is several times slower).
     """
@@ -55,7 +57,7 @@ class _Interpolate(torch.autograd.Function):
         ctx.table_shape = table.shape
         flat_idx = idx.view(-1)
         out = []
-        for rows in table.detach().view(table.shape[0], -1):
+        for rows in table.detach():
             corner = rows.index_select(0, flat_idx).view(idx.shape)
             out.append(corner.mul_(w).sum(dim=1))
         return torch.stack(out)
@@ -66,7 +68,7 @@ class _Interpolate(torch.autograd.Function):
         grad = torch.zeros(ctx.table_shape, dtype=w.dtype, device=w.device)
         flat_idx = idx.view(-1)
         # grad_out arrives as a transposed view of the (N, L * F) output gradient: make N innermost.
-        for rows, g in zip(grad.view(ctx.table_shape[0], -1), grad_out.contiguous()):
+        for rows, g in zip(grad, grad_out.contiguous()):
             rows.index_add_(0, flat_idx, (g[:, None, :] * w).view(-1))
         return grad, None, None
 
@@ -83,8 +85,8 @@ class HashGridEncoding(nn.Module):
         generator: CPU random generator for the initial features (seeded runs are reproducible).
 
     Attributes:
-        table: ``(F, L, T)`` trainable features; feature ``f`` of row ``r`` of level ``l`` is
-            ``table[f, l, r]``.
+        table: ``(F, R)`` trainable features; feature ``f`` of row ``r`` of level ``l`` is
+            ``table[f, level_offsets[l] + r]`` (see :meth:`level_table`).
         resolutions: ``res_l = ceil(scale_l) + 1`` per level (``res_l + 1`` vertices per axis).
         dense: per level, whether it is indexed densely (dense levels come first).
     """
@@ -110,14 +112,22 @@ class HashGridEncoding(nn.Module):
         self.resolutions = tuple(math.ceil(float(s)) + 1 for s in scales)
         self.dense = tuple((r + 1) ** 3 <= t for r in self.resolutions)
         self.n_dense_levels = sum(self.dense)
+        sizes = [(r + 1) ** 3 if d else t for r, d in zip(self.resolutions, self.dense)]
+        self.level_sizes = tuple(sizes)
+        self.level_offsets = tuple(sum(sizes[:level]) for level in range(n_levels))
         mult = [[1, r + 1, (r + 1) ** 2] if d else list(PRIMES) for r, d in zip(self.resolutions, self.dense)]
         self.register_buffer("scales", scales, persistent=False)
         self.register_buffer("_mult", torch.tensor(mult, dtype=torch.int64)[:, :, None], persistent=False)
         self.register_buffer(
-            "_level_offset", (torch.arange(n_levels, dtype=torch.int32) * t)[:, None, None], persistent=False
+            "_level_offset", torch.tensor(self.level_offsets, dtype=torch.int32)[:, None, None], persistent=False
         )
-        table = torch.empty(n_features_per_level, n_levels, t).uniform_(-1e-4, 1e-4, generator=generator)
+        table = torch.empty(n_features_per_level, sum(sizes)).uniform_(-1e-4, 1e-4, generator=generator)
         self.table = nn.Parameter(table)
+
+    def level_table(self, level: int) -> Tensor:
+        """The ``(F, rows)`` view of ``table`` holding level ``level``'s rows."""
+        start = self.level_offsets[level]
+        return self.table[:, start:start + self.level_sizes[level]]
 
     def corners(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Table rows and trilinear weights of the 8 cell corners of every point at every level.
@@ -126,8 +136,7 @@ class HashGridEncoding(nn.Module):
             x: ``(N, 3)`` positions in ``[0, 1]^3`` (clamped).
 
         Returns:
-            ``(idx, w)``, each ``(L, 8, N)``: ``idx`` int32 rows of ``table[f].view(L * T)`` (level offset
-            ``l * T`` included), ``w`` float32 weights; corner ``c = 4 i + 2 j + k`` is the vertex
+            ``(idx, w)``, each ``(L, 8, N)``: ``idx`` int32 rows of ``table[f]`` (level offset included), ``w`` float32 weights; corner ``c = 4 i + 2 j + k`` is the vertex
             ``(floor(u) + i, floor(v) + j, floor(w) + k)`` of the grid coordinate ``(u, v, w)``.
         """
         n, n_levels, mask = x.shape[0], self.n_levels, self.hashmap_size - 1
@@ -141,15 +150,15 @@ class HashGridEncoding(nn.Module):
         terms[:, :, 0] = lower
         terms[:, :, 1] = (lower + self._mult) & mask
         tx, ty, tz = terms.unbind(1)  # (L, 2, N) each
-        tz = tz + self._level_offset
         idx = torch.empty(n_levels, 2, 2, 2, n, dtype=torch.int32, device=x.device)
         nd = self.n_dense_levels
-        if nd > 0:  # i + j (res+1) + k (res+1)^2
+        if nd > 0:  # offset + i + j (res+1) + k (res+1)^2
             xy = tx[:nd, :, None] + ty[:nd, None, :]
-            torch.add(xy[:, :, :, None], tz[:nd, None, None], out=idx[:nd])
-        if nd < n_levels:  # (i p0 ^ j p1 ^ k p2) mod T
+            torch.add(xy[:, :, :, None], (tz[:nd] + self._level_offset[:nd])[:, None, None], out=idx[:nd])
+        if nd < n_levels:  # offset + (i p0 ^ j p1 ^ k p2) mod T
             xy = tx[nd:, :, None] ^ ty[nd:, None, :]
             torch.bitwise_xor(xy[:, :, :, None], tz[nd:, None, None], out=idx[nd:])
+            idx[nd:] += self._level_offset[nd:, :, :, None, None]
         w1 = torch.empty(n_levels, 3, 2, n, dtype=torch.float32, device=x.device)
         torch.sub(1.0, frac, out=w1[:, :, 0])
         w1[:, :, 1] = frac
