@@ -70,6 +70,10 @@ def scene_hash(cfg: DictConfig) -> str:
     scene = copy.deepcopy(OmegaConf.to_container(cfg.scene, resolve=True))
     for key in CHUNKED_KEYS:
         scene.get("integrator", {}).pop(key, None)
+    # file paths: one spelling per file ("/a/b/../c" and "/a/c" are the same volume)
+    for item in [scene.get("volume") or {}, *(scene.get("lights") or [])]:
+        if item.get("path"):
+            item["path"] = os.path.realpath(item["path"])
     return hashlib.sha256(json.dumps(scene, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 

@@ -1,0 +1,94 @@
+"""Smoke test of scripts/speed_vs_error.py on a tiny procedural scene (both modes, two configurations)."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import sys
+
+import pytest
+
+from conftest import REPO
+
+SCRIPT = REPO / "scripts" / "speed_vs_error.py"
+TINY = [
+    "scene.volume.procedural.resolution=16", "scene.camera.width=16", "scene.camera.height=9",
+    "scene.integrator.max_scatter=4",
+]
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("speed_vs_error", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["speed_vs_error"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def sve():
+    return load_script()
+
+
+def nrc_available() -> bool:
+    return (REPO / "conf" / "renderer" / "nrc.yaml").is_file()
+
+
+def test_pareto_and_loglog_interpolation(sve):
+    # a flat-time pt curve: 2 spp is no slower than 1 spp, so 1 spp leaves the front
+    assert sve.pareto([(1.0, 4.0), (0.9, 2.0), (2.0, 1.0), (2.5, 1.5)]) == [(0.9, 2.0), (2.0, 1.0)]
+    ts, es = [1.0, 4.0], [1.0, 0.25]
+    assert sve.loglog_interp(2.0, ts, es) == pytest.approx(0.5)
+    assert sve.loglog_interp(8.0, ts, es) == pytest.approx(0.125)  # slope -1 beyond the end
+    assert sve.loglog_interp(0.5, ts, es) == pytest.approx(2.0)
+
+
+def test_equal_time_ratio_and_crossover(sve):
+    pt = [{"mode": m, "config": "pt", "renderer": "pt", "spp": 1, "frames": n, "time_s": float(n),
+           "rel_mse": 1.0 / n, "rel_mse_medium": 2.0 / n} for m in ("single", "accumulate") for n in (1, 2, 4, 8)]
+    # NRC: at t = 2 half of pt's error; accumulated, a bias floor of 0.3 (medium) that pt undercuts after t = 6.67
+    nrc = [{"mode": "single", "config": "nrc", "renderer": "nrc", "spp": 1, "frames": 1, "time_s": 2.0,
+            "rel_mse": 0.25, "rel_mse_medium": 0.5}]
+    nrc += [{"mode": "accumulate", "config": "nrc", "renderer": "nrc", "spp": 1, "frames": n, "time_s": float(n),
+             "rel_mse": 0.15, "rel_mse_medium": 0.3} for n in (1, 2, 4, 8)]
+    (q,) = sve.equal_time_ratios(pt + nrc, "pt")
+    assert q["ratio_rel_mse"] == pytest.approx(0.5) and q["ratio_rel_mse_medium"] == pytest.approx(0.5)
+    assert not q["extrapolated"]
+    (c,) = sve.crossovers(pt + nrc, "pt")
+    assert c["metric"] == "rel_mse_medium" and c["pt_better_at_end"]
+    assert 4.0 < c["crossover_time_s"] < 8.0
+
+
+def test_smoke_two_configs_both_modes(sve, tmp_path):
+    second = ("nrc_tiny=renderer=nrc,encoding=triangle_oneblob,renderer.training.width=8,renderer.training.height=8,"
+              "cache.network.n_neurons=16,cache.network.n_hidden_layers=2") if nrc_available() else \
+        "pt_track=renderer=pt,transmittance=track_length"
+    argv = ["--preset", "none", "--out", str(tmp_path / "out"), "--reference", str(tmp_path / "missing.exr"),
+            "--configs", "pt", "--config", second, "--pt-spp", "1,2", "--repeats", "2", "--warmup", "1",
+            "--frames", "2", "--acc-max-frames", "2", "--acc-repeats", "2", "--quiet", "--threads", "1", *TINY]
+    # the reference: a small one rendered here, then passed explicitly
+    from conftest import compose
+    from nrc.render.reference import render_reference
+
+    render_reference(compose(TINY + ["scene.integrator.seed=1000000"]), tmp_path / "missing.exr", 8, 32,
+                     progress=False)
+    assert sve.main(argv) == 0
+    out = tmp_path / "out"
+    rows = list(csv.DictReader(open(out / "speed_vs_error.csv")))
+    names = {r["config"] for r in rows}
+    assert names == {"pt", second.split("=")[0]}
+    assert {r["mode"] for r in rows} == {"single", "accumulate"}
+    for r in rows:
+        assert float(r["time_s"]) > 0 and float(r["rel_mse"]) >= 0 and r["rel_mse_medium"] != ""
+    single_pt = [r for r in rows if r["config"] == "pt" and r["mode"] == "single"]
+    assert [int(r["spp"]) for r in single_pt] == [1, 2] and all(float(r["variance"]) > 0 for r in single_pt)
+    assert [int(r["frames"]) for r in rows if r["config"] == "pt" and r["mode"] == "accumulate"] == [1, 2]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["meta"]["baseline"] == "pt" and summary["meta"]["rel_mse_floor"] > 0
+    md = (out / "speed_vs_error.md").read_text()
+    assert "Single frames" in md and "Accumulated frames" in md
+    assert (out / "speed_vs_error.png").stat().st_size > 1000
+    if nrc_available():
+        assert len(summary["equal_time"]) == 1 and summary["equal_time"][0]["ratio_rel_mse"] > 0
+        assert "Equal time per frame" in md
