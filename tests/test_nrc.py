@@ -228,7 +228,8 @@ def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
     result = full.render(on_frame=keep_frame_10_checkpoint)
     loss = np.array(result.metrics["loss_per_frame"])
     assert len(loss) == 20 and np.isfinite(loss).all()
-    assert np.median(loss[-5:]) < 0.7 * np.median(loss[:5]), loss
+    # Frame 0 trains an untrained cache; later losses sit at the floor set by the noisy one-path targets.
+    assert np.median(loss[-5:]) < 0.6 * loss[0], loss
     assert np.isfinite(result.image).all() and result.image.mean() > 0
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
 
