@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from nrc.volume.grid import DensityGrid
-from nrc.volume.majorant import MajorantGrid
+from nrc.volume.majorant import BrickTraversal, MajorantGrid
 
 
 def random_rays(grid, n, gen):
@@ -95,3 +95,30 @@ def test_rays_missing_the_box_start_inactive():
     t0, t1 = grid.box.intersect(o, d)
     trav = mg.traverse(o, d, t0, t1)
     assert trav.active.tolist() == [False, True]
+
+
+def test_skip_empty_equals_advancing_through_empty_bricks():
+    """skip_empty leaves every ray where repeated advance() calls stop: at its first non-empty brick or done."""
+    gen = torch.Generator().manual_seed(3)
+    D = torch.zeros(40, 32, 24)
+    D[10:14, 8:20, 5:9] = torch.rand(4, 12, 4, generator=gen)
+    D[30:33, 25:28, 15:20] = 1.0
+    grid = DensityGrid(D, center=(0, 0, 0), diagonal=3.0, density_scale=2.0)
+    mg = MajorantGrid(grid, brick=4)
+    o, d = random_rays(grid, 3000, gen)
+    t0, t1 = grid.box.intersect(o, d)
+    fast = mg.traverse(o, d, t0, t1)
+    slow = mg.traverse(o, d, t0, t1)
+    skipped = fast.skip_empty()
+    steps = 0
+    while True:
+        empty = slow.active & (slow.majorant() == 0)
+        if not bool(empty.any()):
+            break
+        steps += int(empty.sum())
+        slow.advance(empty)
+    assert skipped == steps > 0
+    for name in BrickTraversal._STATE:
+        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=0, atol=0)
+    assert bool((fast.majorant()[fast.active] > 0).all())
+    assert fast.skip_empty(min_rays=1) == 0

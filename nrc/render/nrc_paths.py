@@ -243,7 +243,7 @@ class NRCPathTracer:
         scattered = torch.zeros(ps.n_train, dtype=torch.bool, device=dev)
         out: dict[str, list[Any]] = {"x": [], "d": [], "w": [], "dest": [], "pid": [], "nee": []}
         timers = {"free_flight": 0.0, "shadow": 0.0}
-        counts = {"tracking_steps": 0, "shadow_rays": 0}
+        counts = {"tracking_steps": 0, "shadow_rays": 0, "iterations": 0, "empty_bricks_skipped": 0}
         max_scatter = scene.integrator.max_scatter
         queued = 0
 
@@ -265,6 +265,11 @@ class NRCPathTracer:
             t_ff = time.perf_counter()
             n_active = len(s["pid"])
             counts["tracking_steps"] += n_active
+            counts["iterations"] += 1
+            skipped = trav.skip_empty(min_rays=n_active // 8)
+            if skipped:  # rays moved past empty bricks resume tracking at their new brick's entry
+                counts["empty_bricks_skipped"] += skipped
+                s["t"] = torch.maximum(s["t"], trav.t)
             u = rng.rand(n_active, 3)
             m_b = trav.majorant()
             t_exit = trav.t_exit()

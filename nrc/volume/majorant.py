@@ -180,6 +180,35 @@ class BrickTraversal:
         """End ``(N,)`` of each ray's current brick segment (never beyond ``t_far``)."""
         return torch.minimum(self.t_next.amin(dim=-1), self.t_end)
 
+    def skip_empty(self, min_rays: int = 1) -> int:
+        """Move every active ray out of empty bricks (majorant 0) in one call; returns the bricks skipped.
+
+        Each ray advances until it reaches a brick with a positive majorant or leaves its segment
+        (then it is inactive). Equivalent to calling :meth:`advance` while the brick is empty, but
+        only the rays in empty bricks are touched and no tracking step is spent on them. Does nothing
+        when fewer than ``min_rays`` rays sit in empty bricks (the loop's fixed cost would not pay).
+        """
+        idx = (self.active & (self.majorant() == 0)).nonzero().squeeze(1)
+        if len(idx) < max(min_rays, 1):
+            return 0
+        sub = object.__new__(BrickTraversal)
+        sub.grid, sub._hi = self.grid, self._hi
+        for name in self._STATE:
+            setattr(sub, name, getattr(self, name)[idx])
+        skipped = 0
+        while len(idx):
+            sub.advance(sub.active)
+            skipped += len(idx)
+            c = sub.cell
+            empty = sub.active & (self.grid.majorant[c[:, 0], c[:, 1], c[:, 2]] == 0)
+            done = ~empty
+            rows = idx[done]
+            for name in self._STATE:
+                getattr(self, name)[rows] = getattr(sub, name)[done]
+            idx = idx[empty]
+            sub.select(empty)
+        return skipped
+
     def advance(self, mask: Tensor) -> None:
         """Move the rays selected by the boolean ``(N,)`` mask to their next brick."""
         mask = mask & self.active
