@@ -70,3 +70,15 @@ def test_app_runs_the_nrc_frame_loop(tmp_path):
     assert proc.returncode == 0, proc.stderr
     metrics = json.loads((resumed / "metrics.json").read_text())
     assert metrics["first_frame"] == 3 and len(metrics["loss_per_frame"]) == 5
+
+
+def test_multirun_sweeps_with_the_joblib_launcher(tmp_path):
+    """`-m` sweeps run each job into its own directory, in parallel processes with hydra/launcher=joblib."""
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    cmd = [sys.executable, "-m", "nrc", "-m", f"hydra.sweep.dir={tmp_path}", "hydra/launcher=joblib",
+           "hydra.launcher.n_jobs=2", *TINY, *NRC_TINY, "frames=1", "batch_filter=none,stripes"]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    for job in ("0", "1"):
+        metrics = json.loads((tmp_path / job / "metrics.json").read_text())
+        assert metrics["renderer"] == "nrc" and len(metrics["loss_per_frame"]) == 1

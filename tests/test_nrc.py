@@ -259,3 +259,24 @@ def test_bad_nrc_settings_name_the_key(override, message):
     with pytest.raises(ConfigError) as err:
         NRCRenderer(load_scene(cfg.scene), cfg).render()
     assert message in str(err.value)
+
+
+def test_orbit_and_sun_animation_rotate_about_world_up():
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun", "renderer.animate.mode=orbit",
+                   "renderer.animate.degrees_per_frame=90"])
+    scene = load_scene(cfg.scene)
+    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    cam0, cam1 = r.frame_camera(0), r.frame_camera(1)
+    centre = scene.grid.box.center
+    rel0, rel1 = cam0.position - centre, cam1.position - centre
+    assert rel1[1].item() == pytest.approx(rel0[1].item(), abs=1e-4)  # height kept
+    assert (rel0[[0, 2]] * rel1[[0, 2]]).sum().item() == pytest.approx(0.0, abs=1e-3)  # a quarter turn
+    torch.testing.assert_close(torch.linalg.cross(cam1.forward, cam1.up), cam1.right, atol=1e-5, rtol=0)
+    assert r.frame_lights(1) is r.lights  # orbit leaves the lights alone
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun", "renderer.animate.mode=sun",
+                   "renderer.animate.degrees_per_frame=180"])
+    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    (sun,) = scene.lights
+    turned = r.frame_lights(1).directional[0].direction
+    torch.testing.assert_close(turned, sun.direction * torch.tensor([-1.0, 1.0, -1.0]), atol=1e-6, rtol=0)
+    assert r.frame_camera(1) is scene.camera
