@@ -11,7 +11,13 @@ Estimator (per camera sample; SCENE.md conventions):
   (camera rays that escape see the environment with weight 1).
 * Optional Russian roulette on the throughput (off by default).
 
-Execution: a fixed working set of ``renderer.slots`` paths advances one delta-tracking step per
+Backends (``renderer.backend``): ``eager`` is the implementation below; ``compiled``
+(:mod:`nrc.render.pt_compiled`) runs the same estimator as a ``torch.compile``'d per-slot state machine;
+``auto`` picks ``compiled`` for renders of at least ``renderer.compile_min_samples`` camera samples when the
+configuration is supported and ``torch.compile`` works, else ``eager``. Every fallback is recorded in the
+metrics (``backend``, ``backend_reason``).
+
+Execution (eager): a fixed working set of ``renderer.slots`` paths advances one delta-tracking step per
 iteration; finished paths are replaced from the queue of camera samples, so every slot does useful work
 until the queue runs dry. Scattering vertices push their next-event requests into a queue that is
 traced in batches of ``renderer.shadow_batch`` rays by the transmittance estimator. Peak memory is
@@ -22,6 +28,7 @@ plus the ``(H x W x 3)`` float32 accumulation image.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import Any
@@ -40,6 +47,9 @@ from nrc.transport.tracking import MAJORANT_ATOL, MAJORANT_RTOL, MajorantError
 from nrc.transport.transmittance import make_transmittance
 from nrc.volume.majorant import MajorantGrid
 
+log = logging.getLogger(__name__)
+
+BACKENDS = ("auto", "eager", "compiled")
 _FIELDS = ("pix", "o", "d", "t", "t_max", "beta", "n", "pdf")
 
 
@@ -88,6 +98,44 @@ class PathTracer:
         self.lights = LightSampler(scene.lights, self.device)
         self.spp = scene.integrator.spp
         self.max_scatter = scene.integrator.max_scatter
+        self.backend = r.get("backend", "eager")
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"renderer.backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
+        self.steps_per_call = r.get("steps_per_call", 1)
+        self.compile_min_samples = r.get("compile_min_samples", 0)
+        for key, value, low in (("steps_per_call", self.steps_per_call, 1),
+                                ("compile_min_samples", self.compile_min_samples, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ConfigError(f"renderer.{key} must be an integer >= {low}, got {value!r}")
+        self._machine: Any = None  # the compiled state machine, built on first use
+
+    # ------------------------------------------------------------------ backend choice
+    def _choose_backend(self) -> tuple[str, str | None]:
+        """``(backend, reason)``: the backend to run and, when it is not the requested one (or ``auto`` chose
+        eager), why."""
+        from nrc.render import pt_compiled
+
+        if self.backend == "eager":
+            return "eager", None
+        reason = pt_compiled.unsupported_reason(self)
+        if reason is None and self.backend == "auto":
+            total = self.scene.camera.num_pixels * self.spp
+            if total < self.compile_min_samples:
+                reason = (f"{total} camera samples < renderer.compile_min_samples={self.compile_min_samples} "
+                          "(start-up would outweigh the speed-up)")
+        if reason is None:
+            try:
+                if self._machine is None:
+                    self._machine = pt_compiled.StateMachine(self, compile=True)
+                self._machine.warm_up()
+            except Exception as exc:  # no C++ compiler, unsupported op, ...: the eager tracer still works
+                self._machine = None
+                reason = f"torch.compile failed: {type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
+        if reason is not None:
+            if self.backend == "compiled":
+                log.warning("renderer.backend=compiled: falling back to eager: %s", reason)
+            return "eager", reason
+        return "compiled", None
 
     # ------------------------------------------------------------------ camera samples
     def _camera_paths(self, sample_ids: Tensor, gen: torch.Generator) -> dict[str, Tensor]:
@@ -180,6 +228,19 @@ class PathTracer:
 
     # ------------------------------------------------------------------ main loop
     def render(self, progress: bool = False) -> RenderResult:
+        """Render the scene with the configured backend; ``metrics`` name the backend, the start-up (compile)
+        time apart from ``time_render_s``, and the reason for any fallback to eager."""
+        backend, reason = self._choose_backend()
+        if backend == "compiled":
+            from nrc.render.pt_compiled import render_state_machine
+
+            result = render_state_machine(self, self._machine, progress)
+        else:
+            result = self._render_eager(progress)
+        result.metrics.update({"backend_requested": self.backend, "backend_reason": reason})
+        return result
+
+    def _render_eager(self, progress: bool) -> RenderResult:
         scene, dev = self.scene, self.device
         cam = scene.camera
         total = cam.num_pixels * self.spp
@@ -273,6 +334,7 @@ class PathTracer:
             raise RuntimeError("path tracer produced non-finite pixels")
         metrics: dict[str, Any] = {
             "renderer": self.name,
+            "backend": "eager",
             "free_flight": self.free_flight,
             "brick": self.majorants.brick,
             "transmittance": self.transmittance.name,

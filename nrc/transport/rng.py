@@ -1,0 +1,53 @@
+"""Counter-based random numbers from an integer hash (stateless, compiles into fused kernels).
+
+A random number is a pure function of ``(key, counter, lane)``: no generator state is carried, so a batch of
+paths can draw its numbers inside a ``torch.compile``'d step and the result depends only on each path's own
+key and counter (not on the batch layout or the number of slots). Same key, counter and lane => same number
+on every device.
+
+Hash: Chris Wellons' ``lowbias32`` family, constants ``[16 21f0aaad 15 735a2d97 15]`` (both multipliers below
+2^31, so every product of a 32-bit value fits in int64 without overflow). All arithmetic is on int64 tensors
+holding values in ``[0, 2^32)``.
+
+Uniforms: the top 24 bits of a hash, ``u = (h >> 8) * 2^-24``, exactly representable in float32 and in
+``[0, 1 - 2^-24]`` (so ``-log1p(-u)`` is always finite).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+MASK32 = 0xFFFFFFFF
+_M1 = 0x21F0AAAD
+_M2 = 0x735A2D97
+_GOLDEN = 0x9E3779B9  # 2^32 / phi: decorrelates lanes and seeds
+_INV_2_24 = 1.0 / (1 << 24)
+
+
+def hash32(x: Tensor) -> Tensor:
+    """A bijective 32-bit integer hash of an int64 tensor (taken modulo 2^32); returns int64 in ``[0, 2^32)``."""
+    x = x & MASK32
+    x = x ^ (x >> 16)
+    x = (x * _M1) & MASK32
+    x = x ^ (x >> 15)
+    x = (x * _M2) & MASK32
+    return x ^ (x >> 15)
+
+
+def path_key(seed: int, sample_id: Tensor) -> Tensor:
+    """The per-path key ``(N,)`` int64 for camera sample ids ``(N,)`` (int64, any value) under ``seed``."""
+    s = hash32(torch.full_like(sample_id, (int(seed) * _GOLDEN) & MASK32))
+    lo = hash32(sample_id ^ s)
+    return hash32(lo + hash32((sample_id >> 32) + s))
+
+
+def uniforms(key: Tensor, counter: Tensor, lanes: int) -> list[Tensor]:
+    """``lanes`` float32 uniforms ``(N,)`` in ``[0, 1)`` for keys and counters ``(N,)`` (int64), one tensor a
+    lane (elementwise code only, so a compiler fuses it with its consumers).
+
+    Lane ``j`` of the draw ``(key, counter)`` is ``hash32(hash32(key ^ hash32(counter)) ^ (j + 1) * golden)``:
+    streams of different keys never shift into each other (unlike ``hash(key + counter)``).
+    """
+    s = hash32(key ^ hash32(counter))
+    return [(hash32(s ^ (((j + 1) * _GOLDEN) & MASK32)) >> 8).to(torch.float32) * _INV_2_24 for j in range(lanes)]
