@@ -47,7 +47,7 @@ from nrc.render.termination import Termination
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.phase import hg_pdf, hg_sample
-from nrc.transport.tracking import MAJORANT_ATOL, MAJORANT_RTOL, MajorantError
+from nrc.transport.free_flight import delta_tracking_step
 from nrc.volume.majorant import MajorantGrid
 
 _FIELDS = ("pid", "dest", "o", "d", "t", "t_max", "beta", "n", "pdf", "extra", "never", "n_term", "rec_base",
@@ -271,20 +271,9 @@ class NRCPathTracer:
                 counts["empty_bricks_skipped"] += skipped
                 s["t"] = torch.maximum(s["t"], trav.t)
             u = rng.rand(n_active, 3)
-            m_b = trav.majorant()
-            t_exit = trav.t_exit()
-            step = -torch.log1p(-u[:, 0]) / m_b.clamp(min=1e-30)
-            t_cand = torch.where(m_b > 0, s["t"] + step, torch.full_like(step, float("inf")))
-            cross = t_cand >= t_exit
-            escaped = (cross & (t_exit >= trav.t_end)) | ~trav.active
-            x = s["o"] + torch.where(cross, t_exit, t_cand)[:, None] * s["d"]
-            sigma = scene.grid.sigma_t(x)
-            limit = m_b * (1.0 + MAJORANT_RTOL) + MAJORANT_ATOL * self.majorants.global_majorant
-            if bool(((sigma > limit) & ~cross).any()):
-                raise MajorantError("sigma_t exceeded the free-flight majorant: the majorant grid is stale or wrong")
-            real = ~cross & (u[:, 1] * m_b < sigma)
-            s["t"] = torch.where(cross, t_exit, torch.where(real, s["t"], t_cand))
-            trav.advance(cross & ~escaped)
+            step = delta_tracking_step(scene.grid, trav, self.majorants.global_majorant, s["o"], s["d"], s["t"], u)
+            x, real, escaped = step.x, step.real, step.escaped
+            s["t"] = step.t
             finished = escaped.clone()
 
             if lights.has_env and bool(escaped.any()):
