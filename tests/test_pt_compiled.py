@@ -140,7 +140,7 @@ def test_furnace_non_absorbing_medium_under_uniform_sky_is_invisible(g, single_t
 
 
 def test_deterministic_and_independent_of_the_working_set(single_thread):
-    base = ["scene=sun_sky", "scene.camera.width=10", "scene.camera.height=6", "scene.integrator.spp=4",
+    base = ["scene=sun_sky", "scene.camera.width=8", "scene.camera.height=4", "scene.integrator.spp=2",
             "scene.integrator.max_scatter=8"]
     a = render_sm(make(base)[0])
     b = render_sm(make(base)[0]).image

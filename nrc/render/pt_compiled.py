@@ -16,7 +16,9 @@ execution only:
   is needed), so a step is the same branch-free arithmetic for every slot.
 * **Counter-based RNG** (:mod:`nrc.transport.rng`): the numbers of a path depend on ``(seed, sample id, step
   counter)`` only, so the image does not depend on the number of slots or on the refill cadence.
-* **Refill** happens outside the compiled function, between calls of ``steps_per_call`` steps: finished
+* **Scattering** is a second compiled function run after each tracking call on the slots that met a real
+  collision (a few percent of them): the tracking step itself only looks up the density and updates weights.
+* **Refill** happens outside the compiled functions, between calls of ``steps_per_call`` steps: finished
   paths add their radiance to their pixel and their slots take new camera samples. Once the camera queue is
   empty the state is compacted whenever fewer than half the slots are live (dynamic shapes: no recompile).
 
@@ -56,6 +58,7 @@ NF = 24
 _PIX, _KEY, _CNT, _N, _FF, _SH, _OCC, _NSH = range(8)
 NI = 8
 MAX_CROSSING_STEPS = 2000  # denser media (global majorant x box diagonal) stay on the eager brick DDA
+REFILL_EVERY = 4  # calls between refills while the camera queue lasts (finished slots idle ~1.5 steps)
 MIN_SLOTS = 64  # compaction never goes below this (dynamic-shape kernels specialise sizes 0 and 1)
 
 
@@ -200,9 +203,11 @@ class Lights3:
 
 
 class WavefrontStep:
-    """One iteration of the per-slot state machine, as a pure function ``(F, I) -> (F, I)`` of the
-    ``(NF, S)`` float32 and ``(NI, S)`` int64 state. Written per component (no ``(S, 3)`` tensors, no
-    reductions), so that inductor fuses the whole step into a few loops over the slots.
+    """The per-slot state machine as two pure functions of the ``(NF, S)`` float32 and ``(NI, S)`` int64
+    state: :meth:`track` (one tracking step of every slot) and :meth:`scatter` (the few slots that met a real
+    collision: NEE request, roulette, phase sampling; run on that subset only, so the common step stays
+    small). Written per component (no ``(S, 3)`` tensors, no reductions), so that inductor fuses each into a
+    few loops over the slots.
 
     Args:
         grid: the density grid; lights: the light sampler; albedo, g: medium; max_scatter: integrator limit;
@@ -238,24 +243,26 @@ class WavefrontStep:
         """Extinction ``(S,)`` per world unit at world points ``x``."""
         return self.scale * trilinear(self.density, self.lo, self.hi, x)
 
-    def __call__(self, F: Tensor, I: Tensor) -> tuple[Tensor, Tensor]:
+    def track(self, F: Tensor, I: Tensor) -> tuple[Tensor, Tensor]:
+        """One tracking step for every slot: its shadow ray if one is pending, else its free flight. Slots
+        whose free flight meets a real collision are left waiting (``FF = 2``, ``o`` = the vertex) for
+        :meth:`scatter`."""
         lights, m = self.lights, self.majorant
         row = F.unbind(0)
         o, d, t, tmax = row[0:3], row[3:6], row[_T], row[_TMAX]
         beta, pdf, L = row[8:11], row[_PDF], row[12:15]
         wi, ts, tse, Tr, csh = row[15:18], row[_TS], row[_TSE], row[_TR], row[21:24]
         n = I[_N]
-        ff, sh = I[_FF] != 0, I[_SH] != 0
+        ff, sh = I[_FF] == 1, I[_SH] != 0
         cnt = I[_CNT] + (ff | sh).long()
-        u = uniforms(I[_KEY], cnt, self.lanes)
+        u0, u1 = uniforms(I[_KEY], cnt, 2)
         zero = torch.zeros_like(t)
 
-        # One tracking step for every slot: its shadow ray if one is pending, else its free flight.
         run_ff = ff & ~sh
         dr = _pick(sh, wi, d)
         tr = torch.where(sh, ts, t)
         te = torch.where(sh, tse, tmax)
-        tc = tr - torch.log1p(-u[0]) / m if m > 0 else torch.full_like(tr, math.inf)
+        tc = tr - torch.log1p(-u0) / m if m > 0 else torch.full_like(tr, math.inf)
         passed = tc >= te
         tx = torch.where(passed, tr, tc)
         x = (o[0] + tx * dr[0], o[1] + tx * dr[1], o[2] + tx * dr[2])
@@ -265,42 +272,52 @@ class WavefrontStep:
         # Shadow rays: ratio tracking with roulette; the contribution lands when the ray ends.
         Tn = torch.where(passed, Tr, Tr * nul)
         if self.thr > 0:
-            Tn = torch.where(~passed & (Tn < self.thr), (u[1] < Tn).to(Tn.dtype), Tn)
+            Tn = torch.where(~passed & (Tn < self.thr), (u1 < Tn).to(Tn.dtype), Tn)
         sh_end = sh & (passed | (Tn == 0))
         L = tuple(Lc + torch.where(sh_end, c * Tn, zero) for Lc, c in zip(L, csh))
         ts = torch.where(sh, tc, ts)
         Tr = torch.where(sh, Tn, Tr)
-        sh_new = sh & ~sh_end
 
         # Free flights: escape (environment, MIS unless a camera ray), null or real collision.
         esc = run_ff & passed
-        real = run_ff & ~passed & (u[1] * m < sigma)
+        real = run_ff & ~passed & (u1 * m < sigma)
         t = torch.where(run_ff & ~passed & ~real, tc, t)
         if lights.env is not None:
             w = torch.where(pdf > 0, _power(pdf, lights.env_pdf), torch.ones_like(pdf))
             L = tuple(Lc + torch.where(esc, b * (e * w), zero) for Lc, b, e in zip(L, beta, lights.env))
         at_limit = real & (n >= self.max_scatter)  # the continuation of the last vertex collided: done
         scat = real & ~at_limit
-        ff_new = ff & ~esc & ~at_limit
+        o = _pick(scat, x, o)
+        ff_new = torch.where(scat, 2, torch.where(esc | at_limit, 0, I[_FF]))
 
-        # Real scattering (evaluated for every slot, kept where `scat`): NEE request, roulette, phase sample.
+        F = torch.stack([*o, *d, t, tmax, *beta, pdf, *L, *wi, ts, tse, Tr, *csh])
+        I = torch.stack([I[_PIX], I[_KEY], cnt, n, ff_new, (sh & ~sh_end).long(), I[_OCC], I[_NSH] + sh.long()])
+        return F, I
+
+    def scatter(self, F: Tensor, I: Tensor) -> tuple[Tensor, Tensor]:
+        """Real scattering at ``o`` for every given slot (all wait with ``FF = 2``): the NEE request (light
+        sample, its weight; the slot's shadow ray starts), Russian roulette and the phase-sampled continuation.
+        Uses lanes 2.. of the slot's current draw (:meth:`track` used lanes 0 and 1)."""
+        lights = self.lights
+        row = F.unbind(0)
+        x, d, beta, csh, wi = row[0:3], row[3:6], row[8:11], row[21:24], row[15:18]
+        n = I[_N]
+        u = uniforms(I[_KEY], I[_CNT], self.lanes)
+        zero = torch.zeros_like(row[_T])
         n_s = n + 1
         beta_s = tuple(b * self.albedo for b in beta)
+        tse, sh = row[_TSE], I[_SH]
         lane = 4 + (self.rr_start is not None)
         if lights.n_lights:
             u_sel = u[lane] if lights.n_lights > 1 else zero
             lane += lights.n_lights > 1
             u_env = (u[lane], u[lane + 1]) if lights.env is not None else (zero, zero)
-            l_wi, l_dist, l_w, l_pdf, l_env = lights.sample(x, u_sel, *u_env)
-            tse_s = torch.minimum(box_exit(self.lo, self.hi, x, l_wi), l_dist)
-            phase = hg_pdf(self.g, d[0] * l_wi[0] + d[1] * l_wi[1] + d[2] * l_wi[2])
+            wi, l_dist, l_w, l_pdf, l_env = lights.sample(x, u_sel, *u_env)
+            tse = torch.minimum(box_exit(self.lo, self.hi, x, wi), l_dist)
+            phase = hg_pdf(self.g, d[0] * wi[0] + d[1] * wi[1] + d[2] * wi[2])
             w = phase * torch.where(l_env, _power(l_pdf, phase), torch.ones_like(phase))
-            wi = _pick(scat, l_wi, wi)
-            ts = torch.where(scat, zero, ts)
-            tse = torch.where(scat, tse_s, tse)
-            Tr = torch.where(scat, torch.ones_like(Tr), Tr)
-            csh = _pick(scat, tuple(b * lw * w for b, lw in zip(beta_s, l_w)), csh)
-            sh_new = sh_new | scat
+            csh = tuple(b * lw * w for b, lw in zip(beta_s, l_w))
+            sh = torch.ones_like(sh)
         amax = torch.maximum(torch.maximum(beta_s[0], beta_s[1]), beta_s[2])
         stop = amax <= 0
         if not lights.has_env:
@@ -312,17 +329,8 @@ class WavefrontStep:
             beta_s = tuple(torch.where(in_rr, b / q, b) for b in beta_s)
         d_s, pdf_s = hg_sample3(self.g, d, u[2], u[3])
         t_far = box_exit(self.lo, self.hi, x, d_s)
-        o = _pick(scat, x, o)
-        d = _pick(scat, d_s, d)
-        t = torch.where(scat, zero, t)
-        tmax = torch.where(scat, t_far, tmax)
-        beta = _pick(scat, beta_s, beta)
-        pdf = torch.where(scat, pdf_s, pdf)
-        n = torch.where(scat, n_s, n)
-        ff_new = ff_new & ~(scat & stop)
-
-        F = torch.stack([*o, *d, t, tmax, *beta, pdf, *L, *wi, ts, tse, Tr, *csh])
-        I = torch.stack([I[_PIX], I[_KEY], cnt, n, ff_new.long(), sh_new.long(), I[_OCC], I[_NSH] + sh.long()])
+        F = torch.stack([*x, *d_s, zero, t_far, *beta_s, pdf_s, *row[12:15], *wi, zero, tse, zero + 1.0, *csh])
+        I = torch.stack([I[_PIX], I[_KEY], I[_CNT], n_s, (~stop).long(), sh, I[_OCC], I[_NSH]])
         return F, I
 
 
@@ -351,11 +359,12 @@ def inductor_cache_dir() -> Path:
 
 
 def multi_step(step: WavefrontStep, k: int) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
-    """``k`` iterations of ``step`` as one function (one compiled graph)."""
+    """``k`` tracking steps as one function (one compiled graph); slots that reach a scattering vertex wait
+    for :meth:`WavefrontStep.scatter` after the call."""
 
     def run(F: Tensor, I: Tensor) -> tuple[Tensor, Tensor]:
         for _ in range(k):
-            F, I = step(F, I)
+            F, I = step.track(F, I)
         return F, I
 
     return run
@@ -363,54 +372,62 @@ def multi_step(step: WavefrontStep, k: int) -> Callable[[Tensor, Tensor], tuple[
 
 def render_loop(
     pt: PathTracer,
-    fn: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]],
+    machine: StateMachine,
     image: Tensor,
     timers: dict[str, float],
     counts: dict[str, int],
 ) -> None:
-    """Drive ``fn`` (``steps_per_call`` iterations) over all camera samples, accumulating into ``image``
-    ``(H*W, 3)``. ``timers`` gets ``step`` and ``refill`` seconds, ``counts`` the work counters."""
+    """Drive ``machine`` over all camera samples, accumulating into ``image`` ``(H*W, 3)``. ``timers`` gets
+    ``step`` (tracking), ``scatter`` and ``refill`` seconds, ``counts`` the work counters."""
     dev = pt.device
     total = pt.scene.camera.num_pixels * pt.spp
     S = max(min(pt.slots, total), 2)
     F = torch.zeros(NF, S, device=dev)
     I = torch.zeros(NI, S, dtype=torch.long, device=dev)
-    next_id = 0
+    next_id, calls = 0, 0
     while True:
-        t_rf = time.perf_counter()
-        free = (I[_FF] == 0) & (I[_SH] == 0)
-        idx = free.nonzero().squeeze(1)
-        k = 0
-        if len(idx):
-            done = idx[I[_OCC, idx] != 0]
-            if len(done):
-                image.index_add_(0, I[_PIX, done], F[_L, done].T)
-                counts["tracking_steps"] += int(I[_CNT, done].sum())
-                counts["shadow_steps"] += int(I[_NSH, done].sum())
-                if pt.lights.n_lights:
-                    counts["shadow_rays"] += int(I[_N, done].sum())
-                I[_OCC, idx] = 0
-            k = min(len(idx), total - next_id)
-            if k:
-                slots = idx[:k]
-                F[:, slots], I[:, slots] = camera_state(pt, torch.arange(next_id, next_id + k, device=dev))
-                next_id += k
-        S = I.shape[1]
-        live = S - len(idx) + k
-        if live == 0:
+        if calls % REFILL_EVERY == 0 or next_id >= total:
+            t_rf = time.perf_counter()
+            free = (I[_FF] == 0) & (I[_SH] == 0)
+            idx = free.nonzero().squeeze(1)
+            k = 0
+            if len(idx):
+                done = idx[I[_OCC, idx] != 0]
+                if len(done):
+                    image.index_add_(0, I[_PIX, done], F[_L, done].T)
+                    counts["tracking_steps"] += int(I[_CNT, done].sum())
+                    counts["shadow_steps"] += int(I[_NSH, done].sum())
+                    if pt.lights.n_lights:
+                        counts["shadow_rays"] += int(I[_N, done].sum())
+                    I[_OCC, idx] = 0
+                k = min(len(idx), total - next_id)
+                if k:
+                    slots = idx[:k]
+                    F[:, slots], I[:, slots] = camera_state(pt, torch.arange(next_id, next_id + k, device=dev))
+                    next_id += k
+            S = I.shape[1]
+            live = S - len(idx) + k
+            if live == 0:
+                timers["refill"] += time.perf_counter() - t_rf
+                return
+            if next_id >= total and live < S // 2 and S > MIN_SLOTS:
+                keep = (~free).nonzero().squeeze(1)
+                if len(keep) < MIN_SLOTS:  # pad with idle slots
+                    keep = torch.cat([keep, free.nonzero().squeeze(1)[: MIN_SLOTS - len(keep)]])
+                F, I = F[:, keep].contiguous(), I[:, keep].contiguous()
             timers["refill"] += time.perf_counter() - t_rf
-            return
-        if next_id >= total and live < S // 2 and S > MIN_SLOTS:
-            keep = (~free).nonzero().squeeze(1)
-            if len(keep) < MIN_SLOTS:  # pad with idle slots
-                keep = torch.cat([keep, free.nonzero().squeeze(1)[: MIN_SLOTS - len(keep)]])
-            F, I = F[:, keep].contiguous(), I[:, keep].contiguous()
-        timers["refill"] += time.perf_counter() - t_rf
         t_st = time.perf_counter()
-        F, I = fn(F, I)
+        F, I = machine.track(F, I)
         counts["iterations"] += 1
+        calls += 1
         counts["slot_steps"] += I.shape[1] * pt.steps_per_call
-        timers["step"] += time.perf_counter() - t_st
+        t_sc = time.perf_counter()
+        timers["step"] += t_sc - t_st
+        sc = (I[_FF] == 2).nonzero().squeeze(1)
+        if len(sc):
+            counts["scatter_events"] += len(sc)
+            F[:, sc], I[:, sc] = machine.scatter(F[:, sc], I[:, sc])
+        timers["scatter"] += time.perf_counter() - t_sc
 
 
 def unsupported_reason(pt: PathTracer) -> str | None:
@@ -428,11 +445,12 @@ def unsupported_reason(pt: PathTracer) -> str | None:
 
 
 class StateMachine:
-    """The step function of ``pt`` (``pt.steps_per_call`` iterations per call), compiled or run eagerly.
+    """The functions of ``pt``'s state machine, compiled or run eagerly: ``track`` (``pt.steps_per_call``
+    tracking steps of every slot) and ``scatter`` (the slots waiting at a scattering vertex).
 
     Args:
         pt: the path tracer (scene, lights, settings).
-        compile: wrap the step in ``torch.compile(fullgraph=True)`` (dynamic slot count) with the inductor cache
+        compile: compile both with :func:`_compile` with the inductor cache
             under :func:`inductor_cache_dir`; ``False`` runs the identical code eagerly (tests).
     """
 
@@ -440,34 +458,49 @@ class StateMachine:
         thr = float(pt.transmittance.params.get("roulette_threshold", 0.1))
         step = WavefrontStep(pt.scene.grid, pt.lights, pt.scene.albedo, pt.scene.g, pt.max_scatter, thr,
                              pt.rr_start if pt.rr_enabled else None)
-        fn = multi_step(step, pt.steps_per_call)
+        track = multi_step(step, pt.steps_per_call)
+        self._scatter_eager = step.scatter
         self.compiled = compile
         if compile:
             inductor_cache_dir()
-            # indices are clamped in the code: no bounds assertions in the gathers
-            compiled = torch.compile(fn, dynamic=False, fullgraph=True, options={"assert_indirect_indexing": False})
-
-            def fn(F: Tensor, I: Tensor) -> tuple[Tensor, Tensor]:
-                # the slot count varies (compaction): one graph for every size >= 2, no recompiles
-                torch._dynamo.mark_dynamic(F, 1)
-                torch._dynamo.mark_dynamic(I, 1)
-                return compiled(F, I)
-
-        self.fn = fn
+            track, self._scatter = _compile(track), _compile(step.scatter)
+        else:
+            self._scatter = step.scatter
+        self.track = track
         self.device = pt.device
         self.slots = max(pt.slots, MIN_SLOTS)
         self.startup_s: float | None = None
 
+    def scatter(self, F: Tensor, I: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`WavefrontStep.scatter` (sizes below 2 run eagerly: dynamic shapes specialise them)."""
+        return self._scatter(F, I) if F.shape[1] >= 2 else self._scatter_eager(F, I)
+
     def warm_up(self) -> float:
-        """Compile (or load from the cache) by one call on an idle working set of full size (inductor picks
-        its parallelisation from that size); returns the seconds it took (0 when already done)."""
+        """Compile (or load from the cache) by calls on an idle working set of full size (inductor picks
+        its parallelisation from the sizes it sees first); returns the seconds it took (0 when already done)."""
         if self.startup_s is not None:
             return 0.0
         t0 = time.perf_counter()
-        self.fn(torch.zeros(NF, self.slots, device=self.device),
-                torch.zeros(NI, self.slots, dtype=torch.long, device=self.device))
+        F = torch.zeros(NF, self.slots, device=self.device)
+        I = torch.zeros(NI, self.slots, dtype=torch.long, device=self.device)
+        self.track(F, I)
+        k = max(self.slots // 16, 2)
+        self.scatter(F[:, :k].contiguous(), I[:, :k].contiguous())
         self.startup_s = time.perf_counter() - t0
         return self.startup_s
+
+
+def _compile(fn: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
+    """``torch.compile`` of a state function ``(F, I) -> (F, I)`` with a dynamic slot dimension (one graph for
+    every size >= 2, no recompiles). Indices are clamped in the code: no bounds assertions in the gathers."""
+    compiled = torch.compile(fn, dynamic=False, fullgraph=True, options={"assert_indirect_indexing": False})
+
+    def run(F: Tensor, I: Tensor) -> tuple[Tensor, Tensor]:
+        torch._dynamo.mark_dynamic(F, 1)
+        torch._dynamo.mark_dynamic(I, 1)
+        return compiled(F, I)
+
+    return run
 
 
 def render_state_machine(pt: PathTracer, machine: StateMachine, progress: bool = False) -> RenderResult:
@@ -478,10 +511,11 @@ def render_state_machine(pt: PathTracer, machine: StateMachine, progress: bool =
     cam = pt.scene.camera
     total = cam.num_pixels * pt.spp
     image = torch.zeros(cam.num_pixels, 3, device=pt.device)
-    timers = {"step": 0.0, "refill": 0.0}
-    counts = {"tracking_steps": 0, "shadow_steps": 0, "shadow_rays": 0, "iterations": 0, "slot_steps": 0}
+    timers = {"step": 0.0, "scatter": 0.0, "refill": 0.0}
+    counts = {"tracking_steps": 0, "shadow_steps": 0, "shadow_rays": 0, "scatter_events": 0, "iterations": 0,
+              "slot_steps": 0}
     start = time.perf_counter()
-    render_loop(pt, machine.fn, image, timers, counts)
+    render_loop(pt, machine, image, timers, counts)
     elapsed = time.perf_counter() - start
     img = (image / pt.spp).reshape(cam.height, cam.width, 3)
     if not bool(torch.isfinite(img).all()):
