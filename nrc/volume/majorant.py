@@ -196,17 +196,16 @@ class BrickTraversal:
         for name in self._STATE:
             setattr(sub, name, getattr(self, name)[idx])
         skipped = 0
-        while len(idx):
-            sub.advance(sub.active)
-            skipped += len(idx)
-            c = sub.cell
-            empty = sub.active & (self.grid.majorant[c[:, 0], c[:, 1], c[:, 2]] == 0)
-            done = ~empty
-            rows = idx[done]
-            for name in self._STATE:
-                getattr(self, name)[rows] = getattr(sub, name)[done]
-            idx = idx[empty]
-            sub.select(empty)
+        empty = sub.active
+        while True:
+            n = int(empty.sum())
+            if n == 0:
+                break
+            skipped += n
+            sub.advance(empty)
+            empty = sub.active & (sub.majorant() == 0)
+        for name in self._STATE:
+            getattr(self, name)[idx] = getattr(sub, name)
         return skipped
 
     def advance(self, mask: Tensor) -> None:
