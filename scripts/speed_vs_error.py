@@ -14,10 +14,12 @@ Two modes (``--mode single|accumulate|both``):
   frame). Time = mean wall time of one frame (after an untimed warm-up render for ``pt``); relMSE = mean
   over the frames; bias = mean relative bias of the per-pixel mean over the frames; variance = relative
   variance across the frames (see ``nrc.metrics``). The equal-time ratio of an NRC configuration is its
-  relMSE over the relMSE of the baseline ``pt`` curve interpolated (log-log) at the same time per frame
-  (extrapolated with slope -1, relMSE ~ 1/spp, outside the measured range).
-* **accumulate** (static camera). ``pt`` accumulates 1-spp frames, NRC accumulates its frames
-  (``renderer.accumulate=true``, training continues, counted from a cold cache); the error of the
+  relMSE over the relMSE of the baseline ``pt`` curve (its Pareto front: the best relMSE reachable
+  within a time) interpolated (log-log) at the same time per frame (extrapolated with slope -1,
+  relMSE ~ 1/spp, outside the measured range).
+* **accumulate** (static camera; the ``--acc-configs``). ``pt`` accumulates ``--acc-pt-spp``-spp frames,
+  NRC accumulates its 1-spp frames (``renderer.accumulate=true``, training continues, counted from a
+  cold cache); the error of the
   running mean is recorded at 1, 2, 4, ... frames until ``--acc-budget-s`` seconds of rendering (per
   configuration and repeat). ``--acc-repeats`` independent sequences give bias and variance. The
   crossover is the first time after which the unbiased ``pt`` is more accurate than NRC.
@@ -89,7 +91,8 @@ NRC_DEFAULTS = ["renderer.training.width=64", "renderer.training.height=64", "re
 SEED_BASE = 1000  # seeds of the scored renders; references use seeds >= 1e6 (render_reference.py convention)
 REF_SEED = 1_000_000
 FIELDS = [
-    "mode", "config", "renderer", "spp", "frames", "time_s", "rel_mse", "rel_mse_medium", "bias", "bias_medium",
+    "mode", "config", "renderer", "spp", "frames", "time_s", "rel_mse", "rel_mse_medium", "rel_mse_corr",
+    "rel_mse_medium_corr", "bias", "bias_medium",
     "variance", "variance_medium", "mse", "mse_medium", "renders", "rel_mse_floor", "rel_mse_floor_medium",
 ]
 
@@ -219,10 +222,10 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
         rec: dict[int, tuple[float, np.ndarray]] = {}
         if cfg.renderer.name == "pt":
             if rep == 0:
-                pt_render(scene, cfg, 1, SEED_BASE - 1)  # warm-up: untimed
+                pt_render(scene, cfg, args.acc_pt_spp, SEED_BASE - 1)  # warm-up: untimed
             total, t_cum = None, 0.0
             for i in range(args.acc_max_frames):
-                img, dt = pt_render(scene, cfg, 1, SEED_BASE + 10_000 * (rep + 1) + i)
+                img, dt = pt_render(scene, cfg, args.acc_pt_spp, SEED_BASE + 10_000 * (rep + 1) + i)
                 total = img.astype(np.float64) if total is None else total + img
                 t_cum += dt
                 if i + 1 in marks:
@@ -250,7 +253,8 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
     rows = []
     common = sorted(set.intersection(*(set(r) for r in seqs)))
     for n in common:
-        row = {"mode": "accumulate", "config": name, "renderer": cfg.renderer.name, "spp": 1, "frames": n,
+        spp = args.acc_pt_spp if cfg.renderer.name == "pt" else 1
+        row = {"mode": "accumulate", "config": name, "renderer": cfg.renderer.name, "spp": spp, "frames": n,
                "time_s": float(np.mean([r[n][0] for r in seqs])), **scorer.score([r[n][1] for r in seqs])}
         rows.append(row)
         log(row)
@@ -268,6 +272,15 @@ def loglog_interp(t: float, ts: list[float], es: list[float]) -> float:
     if x >= lt[-1]:
         return float(math.exp(le[-1] - (x - lt[-1])))
     return float(math.exp(np.interp(x, lt, le)))
+
+
+def add_corrected(rows: list[dict[str, Any]], floor: float | None, floor_medium: float | None) -> None:
+    """``rel_mse[_medium]_corr``: relMSE minus the reference's own noise floor (an unbiased estimate of the
+    relMSE against the true image, up to the reference's noise in the denominators; may be <= 0 when the
+    error is below the floor's resolution)."""
+    for r in rows:
+        for key, f in (("rel_mse", floor), ("rel_mse_medium", floor_medium)):
+            r[key + "_corr"] = None if (r.get(key) is None or f is None) else r[key] - f
 
 
 def pareto(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
@@ -294,8 +307,8 @@ def equal_time_ratios(rows: list[dict[str, Any]], baseline: str) -> list[dict[st
         if r["mode"] != "single" or r["renderer"] == "pt":
             continue
         item = {"config": r["config"], "spp": r["spp"], "time_s": r["time_s"]}
-        for key in ("rel_mse", "rel_mse_medium"):
-            if r.get(key) is None:
+        for key in ("rel_mse", "rel_mse_medium", "rel_mse_corr", "rel_mse_medium_corr"):
+            if r.get(key) is None or any(b.get(key) is None or b[key] <= 0 for b in base) or r[key] <= 0:
                 continue
             front = pareto([(b["time_s"], b[key]) for b in base])
             pt_e = loglog_interp(r["time_s"], [f[0] for f in front], [f[1] for f in front])
@@ -347,6 +360,7 @@ def fmt(v: Any, digits: int = 3) -> str:
 
 def write_outputs(out: Path, rows, ratios, cross, meta) -> None:
     out.mkdir(parents=True, exist_ok=True)
+    add_corrected(rows, meta["rel_mse_floor"], meta["rel_mse_floor_medium"])
     with open(out / "speed_vs_error.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=FIELDS, extrasaction="ignore")
         w.writeheader()
@@ -382,13 +396,16 @@ def markdown(rows, ratios, cross, meta) -> str:
     if ratios:
         lines += [f"**Equal time per frame**: NRC relMSE over the `{meta['baseline']}` relMSE interpolated (log-log) "
                   "at the NRC time per frame (extrapolated with relMSE ~ 1/time outside the measured spp range).", "",
+                  "The corrected ratio subtracts the reference's noise floor from both relMSEs first.", "",
                   "| config | spp/frame | time/frame (s) | NRC relMSE medium | PT relMSE medium at equal time | "
-                  "ratio medium | ratio all | PT extrapolated |", "|---|---:|---:|---:|---:|---:|---:|---|"]
+                  "ratio medium | ratio all | ratio medium, floor-corrected | PT extrapolated |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
         for q in ratios:
             lines.append(f"| {q['config']} | {q['spp']} | {q['time_s']:.3g} | "
                          f"{fmt(q.get('pt_rel_mse_medium') and q['ratio_rel_mse_medium'] * q['pt_rel_mse_medium'])} | "
                          f"{fmt(q.get('pt_rel_mse_medium'))} | {fmt(q.get('ratio_rel_mse_medium'), 2)} | "
-                         f"{fmt(q.get('ratio_rel_mse'), 2)} | {'yes' if q.get('extrapolated') else 'no'} |")
+                         f"{fmt(q.get('ratio_rel_mse'), 2)} | {fmt(q.get('ratio_rel_mse_medium_corr'), 2)} | "
+                         f"{'yes' if q.get('extrapolated') else 'no'} |")
         lines.append("")
     if cross:
         lines += ["**Crossover (accumulated, static camera)**: the time after which the unbiased PT's running mean "
@@ -461,6 +478,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--acc-max-frames", type=int, default=256, help="most frames accumulated (accumulate mode)")
     p.add_argument("--acc-budget-s", type=float, default=60.0, help="render seconds per sequence (accumulate)")
     p.add_argument("--acc-repeats", type=int, default=2, help="independent sequences (accumulate mode)")
+    p.add_argument("--acc-pt-spp", type=int, default=4,
+                   help="spp per accumulated pt frame (a wavefront frame costs about the same at 1-4 spp)")
+    p.add_argument("--acc-configs", default="pt,nrc_hashgrid",
+                   help="configurations also run in accumulate mode (comma-separated; 'all' for every one)")
     p.add_argument("--nrc-overrides", default=",".join(NRC_DEFAULTS),
                    help="Hydra overrides applied to every nrc configuration before its own (comma-separated)")
     p.add_argument("--reference", type=Path, default=None)
@@ -471,7 +492,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="skip configurations whose renderer is not available (default)")
     p.add_argument("--progress", action="store_true", help="progress bar for a reference render")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--replot", type=Path, default=None, metavar="DIR",
+                   help="only rewrite the tables and plot of DIR/summary.json (no rendering)")
     args, overrides = p.parse_known_args(argv)
+    if args.replot:
+        return replot(args.replot)
     args.pt_spp = [int(s) for s in args.pt_spp.split(",")]
     args.nrc_spp = [int(s) for s in args.nrc_spp.split(",")]
     args.scene_overrides = PRESETS[args.preset] + overrides
@@ -501,7 +526,29 @@ def main(argv: list[str] | None = None) -> int:
     scorer = Scorer(ref.image.astype(np.float64), mask, ref.rel_mse_floor, ref.rel_mse_floor_medium)
 
     rows: list[dict[str, Any]] = []
-    skipped = []
+    skipped: list[str] = []
+
+    def finish() -> tuple[dict, list, list]:
+        """Ratios, crossovers and outputs from the rows so far (written after every configuration)."""
+        baseline = next((n for n, o in configs.items() if _renderer_of(o) == "pt" and n not in skipped), None)
+        ratios = equal_time_ratios(rows, baseline) if baseline else []
+        cross = crossovers(rows, baseline) if baseline else []
+        meta = {
+            "scene": " ".join(args.scene_overrides) or "defaults", "width": cam.width, "height": cam.height,
+            "reference": str(ref_path.relative_to(REPO) if ref_path.is_relative_to(REPO) else ref_path),
+            "ref_spp": ref.attrs.get("spp"), "rel_mse_floor": ref.rel_mse_floor,
+            "rel_mse_floor_medium": ref.rel_mse_floor_medium, "medium_pixels": int(mask.sum()),
+            "baseline": baseline, "skipped": skipped, "nrc_overrides": args.nrc_overrides,
+            "git": _git_rev(), "argv": sys.argv[1:] if argv is None else argv,
+            "machine": f"{platform.machine()}, {_cpu_count()} cores, torch {torch.__version__} "
+                       f"({torch.get_num_threads()} threads)",
+            "wall_time_s": time.perf_counter() - start,
+        }
+        add_corrected(rows, ref.rel_mse_floor, ref.rel_mse_floor_medium)
+        ratios = equal_time_ratios(rows, baseline) if baseline else []
+        write_outputs(args.out, rows, ratios, cross, meta)
+        return meta, ratios, cross
+
     for name, ovs in configs.items():
         nrc_defaults = args.nrc_overrides if _renderer_of(ovs) == "nrc" else []
         cfg = compose(args.scene_overrides + nrc_defaults + ovs) if renderer_available(_renderer_of(ovs)) else None
@@ -511,29 +558,30 @@ def main(argv: list[str] | None = None) -> int:
             continue
         if args.mode in ("single", "both"):
             rows += run_single(name, cfg, scene, scorer, args, log)
-        if args.mode in ("accumulate", "both"):
+        if args.mode in ("accumulate", "both") and (args.acc_configs == "all" or name in args.acc_configs.split(",")):
             rows += run_accumulate(name, cfg, scene, scorer, args, log)
-    baseline = next((n for n, o in configs.items() if _renderer_of(o) == "pt" and n not in skipped), None)
-    ratios = equal_time_ratios(rows, baseline) if baseline else []
-    cross = crossovers(rows, baseline) if baseline else []
-    meta = {
-        "scene": " ".join(args.scene_overrides) or "defaults", "width": cam.width, "height": cam.height,
-        "reference": str(ref_path.relative_to(REPO) if ref_path.is_relative_to(REPO) else ref_path),
-        "ref_spp": ref.attrs.get("spp"), "rel_mse_floor": ref.rel_mse_floor,
-        "rel_mse_floor_medium": ref.rel_mse_floor_medium, "medium_pixels": int(mask.sum()),
-        "baseline": baseline, "skipped": skipped, "nrc_overrides": args.nrc_overrides,
-        "git": _git_rev(), "argv": sys.argv[1:] if argv is None else argv,
-        "machine": f"{platform.machine()}, {_cpu_count()} cores, torch {torch.__version__} "
-                   f"({torch.get_num_threads()} threads)",
-        "wall_time_s": time.perf_counter() - start,
-    }
-    write_outputs(args.out, rows, ratios, cross, meta)
+        finish()
+    meta, ratios, cross = finish()
+    baseline = meta["baseline"]
     for q in ratios:
         log(f"equal-time relMSE ratio {q['config']}/{baseline} (spp {q['spp']}): "
             f"medium {fmt(q.get('ratio_rel_mse_medium'), 2)}, all {fmt(q.get('ratio_rel_mse'), 2)}")
     for c in cross:
         log(f"crossover {c['config']} vs {baseline}: {fmt(c['crossover_time_s'])} s")
     log(f"wrote {args.out}/speed_vs_error.{{csv,md,png}} and summary.json in {meta['wall_time_s']:.0f} s")
+    return 0
+
+
+def replot(out: Path) -> int:
+    """Recompute ratios, crossovers, Markdown and plot from ``out/summary.json``."""
+    summary = json.loads((out / "summary.json").read_text())
+    rows, meta = summary["rows"], summary["meta"]
+    meta.setdefault("nrc_overrides", [])
+    meta.setdefault("git", "unknown")
+    add_corrected(rows, meta["rel_mse_floor"], meta["rel_mse_floor_medium"])
+    baseline = meta["baseline"]
+    write_outputs(out, rows, equal_time_ratios(rows, baseline), crossovers(rows, baseline), meta)
+    print(f"rewrote {out}")
     return 0
 
 

@@ -66,7 +66,8 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
         "pt_track=renderer=pt,transmittance=track_length"
     argv = ["--preset", "none", "--out", str(tmp_path / "out"), "--reference", str(tmp_path / "missing.exr"),
             "--configs", "pt", "--config", second, "--pt-spp", "1,2", "--repeats", "2", "--warmup", "1",
-            "--frames", "2", "--acc-max-frames", "2", "--acc-repeats", "2", "--quiet", "--threads", "1", *TINY]
+            "--frames", "2", "--acc-max-frames", "2", "--acc-repeats", "2",
+            "--acc-pt-spp", "1", "--acc-configs", "all", "--quiet", "--threads", "1", *TINY]
     # the reference: a small one rendered here, then passed explicitly
     from conftest import compose
     from nrc.render.reference import render_reference
@@ -89,6 +90,10 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
     md = (out / "speed_vs_error.md").read_text()
     assert "Single frames" in md and "Accumulated frames" in md
     assert (out / "speed_vs_error.png").stat().st_size > 1000
+    assert all(r["rel_mse_corr"] == pytest.approx(r["rel_mse"] - summary["meta"]["rel_mse_floor"])
+               for r in summary["rows"])
+    (out / "speed_vs_error.md").unlink()
+    assert sve.main(["--replot", str(out)]) == 0 and (out / "speed_vs_error.md").read_text() == md
     if nrc_available():
         assert len(summary["equal_time"]) == 1 and summary["equal_time"][0]["ratio_rel_mse"] > 0
         assert "Equal time per frame" in md
