@@ -120,3 +120,10 @@ def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
     assert float(pt[5]) == pytest.approx(0.02 / 0.26, rel=1e-3)  # var over 2 seeds (ddof 1): 0.02
     assert float(nrc[6]) == pytest.approx(0.4, rel=1e-3) and pt[8] == "64"
     assert "python -m nrc +experiment=nrc_vs_pt_pt" in md
+    # results.md: the intro, speed sections (missing here) and the reports
+    (tmp_path / "intro.md").write_text("Hand-written intro.")
+    assert report.main(["nrc_vs_pt", "--root", str(root), "--docs", str(tmp_path / "docs"), "--results",
+                        "--intro", str(tmp_path / "intro.md")]) == 0
+    results = (tmp_path / "docs" / "results.md").read_text()
+    assert "Hand-written intro." in results and "docs/results/speed_480x270/summary.json` is missing" in results
+    assert "NRC vs PT at 1 spp" in results and "equal-time relMSE ratio" not in results
