@@ -130,7 +130,8 @@ class PathTracer:
                 self._machine.warm_up()
             except Exception as exc:  # no C++ compiler, unsupported op, ...: the eager tracer still works
                 self._machine = None
-                reason = f"torch.compile failed: {type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
+                first = str(exc).splitlines()[0][:200] if str(exc) else ""
+                reason = f"torch.compile failed: {type(exc).__name__}: {first}"
         if reason is not None:
             if self.backend == "compiled":
                 log.warning("renderer.backend=compiled: falling back to eager: %s", reason)

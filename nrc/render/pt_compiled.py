@@ -18,13 +18,15 @@ execution only:
   counter)`` only, so the image does not depend on the number of slots or on the refill cadence.
 * **Scattering** is a second compiled function run after each tracking call on the slots that met a real
   collision (a few percent of them): the tracking step itself only looks up the density and updates weights.
-* **Refill** happens outside the compiled functions, between calls of ``steps_per_call`` steps: finished
-  paths add their radiance to their pixel and their slots take new camera samples. Once the camera queue is
+* **Refill** happens outside the compiled functions, every ``REFILL_EVERY``-th call of ``steps_per_call``
+  steps (every call once the camera queue is empty): finished paths add their radiance to their pixel and
+  their slots take new camera samples. Once the camera queue is
   empty the state is compacted whenever fewer than half the slots are live (dynamic shapes: no recompile).
 
-State: a float32 ``(24, S)`` and an int64 ``(8, S)`` tensor (one contiguous row per field, so the compiled
-kernels vectorise over slots) (136 bytes a slot, 9 MB at 65,536 slots) plus the
-``(H x W x 3)`` image; the compiled step's temporaries are of the same order. Units: world units for
+State: a float32 ``(24, S)`` and an int64 ``(8, S)`` tensor, one contiguous row per field so that the
+compiled kernels vectorise over slots (136 bytes a slot, 9 MB at 65,536 slots), plus the ``(H x W x 3)``
+image; the compiled functions' temporaries are of the same order. Unsupported configurations (see
+:func:`unsupported_reason`) run on the eager backend. Units: world units for
 positions and distances, radiance in linear RGB.
 """
 
@@ -490,7 +492,10 @@ class StateMachine:
         return self.startup_s
 
 
-def _compile(fn: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
+StateFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]  # (F, I) -> (F, I)
+
+
+def _compile(fn: StateFn) -> StateFn:
     """``torch.compile`` of a state function ``(F, I) -> (F, I)`` with a dynamic slot dimension (one graph for
     every size >= 2, no recompiles). Indices are clamped in the code: no bounds assertions in the gathers."""
     compiled = torch.compile(fn, dynamic=False, fullgraph=True, options={"assert_indirect_indexing": False})
