@@ -19,7 +19,8 @@ def compose_experiment(name: str, overrides: list[str] | None = None):
     from hydra import compose, initialize_config_dir
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=[f"+experiment={name}", *(overrides or [])],
+        # the sweeper puts the swept overrides before the command line's +experiment=... (as here)
+        return compose(config_name="config", overrides=[*(overrides or []), f"+experiment={name}"],
                        return_hydra_config=True)
 
 
@@ -52,6 +53,7 @@ def test_experiment_composes_as_a_multirun(name):
                 assert sub.framing == v
             if "setup" in key:
                 assert sub.setup == v
+                assert sub.scene.volume.density_scale == (0.25 if v.endswith("025") else 0.6)
                 assert sub.scene.lights[0].type == ("point" if v.startswith("point") else "directional")
             if key == "encoding":
                 assert sub.encoding.position.otype
