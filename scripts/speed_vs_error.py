@@ -153,6 +153,12 @@ def with_spp_seed(scene, spp: int, seed: int):
     return dataclasses.replace(scene, integrator=dataclasses.replace(scene.integrator, spp=int(spp), seed=int(seed)))
 
 
+def pt_warmup(scene, cfg) -> None:
+    """One untimed 16 x 9, 1-spp render: first-use costs of the ops (and of a compiled backend, if chosen)."""
+    small = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=16, height=9))
+    pt_render(small, cfg, 1, SEED_BASE - 1)
+
+
 def pt_render(scene, cfg, spp: int, seed: int) -> tuple[np.ndarray, float]:
     from nrc.render.pt import PathTracer
 
@@ -180,7 +186,7 @@ def nrc_run(scene, cfg, spp: int, seed: int, frames: int, accumulate: bool,
 def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
     rows = []
     if cfg.renderer.name == "pt":
-        pt_render(scene, cfg, args.pt_spp[0], SEED_BASE - 1)  # warm-up (compilation, caches): untimed
+        pt_warmup(scene, cfg)
         for spp in args.pt_spp:
             frames, times = [], []
             for j in range(args.repeats):
@@ -222,7 +228,7 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
         rec: dict[int, tuple[float, np.ndarray]] = {}
         if cfg.renderer.name == "pt":
             if rep == 0:
-                pt_render(scene, cfg, args.acc_pt_spp, SEED_BASE - 1)  # warm-up: untimed
+                pt_warmup(scene, cfg)
             total, t_cum = None, 0.0
             for i in range(args.acc_max_frames):
                 img, dt = pt_render(scene, cfg, args.acc_pt_spp, SEED_BASE + 10_000 * (rep + 1) + i)

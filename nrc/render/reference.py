@@ -9,8 +9,8 @@ device). The final EXR carries header attributes ``spp`` (int), ``seed`` (base s
 then deleted.
 
 The EXR also stores the **medium mask** as its ``A`` channel: ``alpha = 1 - T``, the transmittance ``T``
-of the camera rays through the medium (no scattering; midpoint quadrature with half-voxel steps, averaged
-over a 2 x 2 stratified grid of rays per pixel). ``nrc.metrics.medium_mask(alpha)`` turns it into the
+of the camera rays through the medium (no scattering; pixel centres, midpoint quadrature with one-voxel
+steps). ``nrc.metrics.medium_mask(alpha)`` turns it into the
 pixel set "where the reference sees the medium". :func:`read_reference` returns image, alpha and header.
 
 **The reference's own noise.** The checkpoint also accumulates the per-pixel sum of squares of the
@@ -97,20 +97,18 @@ class Reference:
 
 
 def medium_alpha(scene: Scene, chunk: int = 1 << 16) -> np.ndarray:
-    """``(H, W)`` float32 ``1 - T`` of the camera rays (2 x 2 stratified rays per pixel, no scattering)."""
+    """``(H, W)`` float32 ``1 - T`` of the camera rays through the pixel centres (no scattering).
+
+    ``T`` by midpoint quadrature with one-voxel steps: cheap (a few seconds at 480 x 270 on a quiet
+    machine) and plenty for a mask of "pixels where the medium is seen".
+    """
     cam, dev = scene.camera, scene.device
-    step = 0.5 * scene.grid.voxel_size
     alpha = torch.zeros(cam.num_pixels, dtype=torch.float32, device=dev)
-    offsets = [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]
     with torch.no_grad():
         for s in range(0, cam.num_pixels, chunk):
             pix = torch.arange(s, min(s + chunk, cam.num_pixels), device=dev)
-            acc = torch.zeros(len(pix), device=dev)
-            for ox, oy in offsets:
-                jitter = torch.tensor([[ox, oy]], device=dev).expand(len(pix), 2)
-                o, d = cam.generate_rays(pix, jitter)
-                acc += 1.0 - camera_transmittance(scene, o, d, step)
-            alpha[pix] = acc / len(offsets)
+            o, d = cam.generate_rays(pix, torch.full((len(pix), 2), 0.5, device=dev))
+            alpha[pix] = 1.0 - camera_transmittance(scene, o, d, scene.grid.voxel_size)
     return alpha.reshape(cam.height, cam.width).cpu().numpy().clip(0.0, 1.0)
 
 
