@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from conftest import compose
+from conftest import block_stats, compose
 from nrc.render.pt import PathTracer
 from nrc.scene import load_scene
 
@@ -14,15 +14,6 @@ if not mitsuba_bridge.mitsuba_available():
 pytestmark = pytest.mark.mitsuba
 
 SEEDS = 4
-
-
-def block_stats(images: list[np.ndarray], block: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and standard error of block-averaged images over independent renders."""
-    stack = np.stack(images)  # (R, H, W, 3)
-    r, h, w, c = stack.shape
-    blocks = stack[:, : h // block * block, : w // block * block].reshape(r, h // block, block, w // block, block, c)
-    per_render = blocks.mean(axis=(2, 4))
-    return per_render.mean(0), per_render.std(0, ddof=1) / np.sqrt(r)
 
 
 # A point light inside the medium makes next-event estimation heavy-tailed (the 1/r^2 of vertices next to

@@ -43,7 +43,7 @@ from nrc.render.result import RenderResult
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.phase import hg_pdf, hg_sample
-from nrc.transport.tracking import MAJORANT_ATOL, MAJORANT_RTOL, MajorantError
+from nrc.transport.free_flight import delta_tracking_step
 from nrc.transport.transmittance import make_transmittance
 from nrc.volume.majorant import MajorantGrid
 
@@ -248,7 +248,7 @@ class PathTracer:
         gen = torch.Generator(device=dev).manual_seed(scene.integrator.seed)
         image = torch.zeros(cam.num_pixels, 3, device=dev)
         timers = {"free_flight": 0.0, "shadow": 0.0, "refill": 0.0}
-        counts = {"tracking_steps": 0, "shadow_rays": 0, "iterations": 0}
+        counts = {"tracking_steps": 0, "shadow_rays": 0, "iterations": 0, "empty_bricks_skipped": 0}
         has_env, n_lights = self.lights.has_env, self.lights.n_lights
 
         start = time.perf_counter()
@@ -265,24 +265,16 @@ class PathTracer:
             n_active = len(s["pix"])
             counts["tracking_steps"] += n_active
             u = torch.rand(n_active, 3, generator=gen, device=dev)
-            # One delta-tracking step per slot against its brick's majorant: either a tentative
-            # collision inside the brick or a move to the brick's exit (memoryless restart there).
-            m_b = trav.majorant()
-            t_exit = trav.t_exit()
-            step = -torch.log1p(-u[:, 0]) / m_b.clamp(min=1e-30)
-            t_cand = torch.where(m_b > 0, s["t"] + step, torch.full_like(step, float("inf")))
-            cross = t_cand >= t_exit
-            escaped = (cross & (t_exit >= trav.t_end)) | ~trav.active
-            x = s["o"] + torch.where(cross, t_exit, t_cand)[:, None] * s["d"]
-            sigma = scene.grid.sigma_t(x)
-            # Bounds are tight, so points rounded onto a neighbouring brick may exceed them by a hair:
-            # the same tolerance as every other majorant check (nrc.transport.tracking).
-            limit = m_b * (1.0 + MAJORANT_RTOL) + MAJORANT_ATOL * self.majorants.global_majorant
-            if bool(((sigma > limit) & ~cross).any()):
-                raise MajorantError("sigma_t exceeded the free-flight majorant: the majorant grid is stale or wrong")
-            real = ~cross & (u[:, 1] * m_b < sigma)
-            s["t"] = torch.where(cross, t_exit, torch.where(real, s["t"], t_cand))
-            trav.advance(cross & ~escaped)
+            # Runs of empty bricks are skipped without tracking steps (when enough rays sit in them);
+            # then one delta-tracking step per slot against its brick's majorant: a tentative collision
+            # inside the brick or a move to the brick's exit (memoryless restart there).
+            skipped = trav.skip_empty(min_rays=n_active // 8)
+            if skipped:  # rays moved past empty bricks resume tracking at their new brick's entry
+                counts["empty_bricks_skipped"] += skipped
+                s["t"] = torch.maximum(s["t"], trav.t)
+            step = delta_tracking_step(scene.grid, trav, self.majorants.global_majorant, s["o"], s["d"], s["t"], u)
+            x, real, escaped = step.x, step.real, step.escaped
+            s["t"] = step.t
             finished = escaped.clone()
 
             # Escaping paths: environment radiance, MIS-weighted against NEE unless it is a camera ray.
