@@ -91,7 +91,7 @@ NRC_DEFAULTS = ["renderer.training.width=64", "renderer.training.height=64", "re
 SEED_BASE = 1000  # seeds of the scored renders; references use seeds >= 1e6 (render_reference.py convention)
 REF_SEED = 1_000_000
 FIELDS = [
-    "mode", "config", "renderer", "spp", "frames", "time_s", "rel_mse", "rel_mse_medium", "rel_mse_corr",
+    "mode", "config", "renderer", "spp", "frames", "time_s", "cpu_s", "rel_mse", "rel_mse_medium", "rel_mse_corr",
     "rel_mse_medium_corr", "bias", "bias_medium",
     "variance", "variance_medium", "mse", "mse_medium", "renders", "rel_mse_floor", "rel_mse_floor_medium",
 ]
@@ -159,12 +159,17 @@ def pt_warmup(scene, cfg) -> None:
     pt_render(small, cfg, 1, SEED_BASE - 1)
 
 
+CPU_TIMES: list[float] = []  # process CPU time of each pt_render call (all threads), read by the callers
+
+
 def pt_render(scene, cfg, spp: int, seed: int) -> tuple[np.ndarray, float]:
+    """A pt render and its wall time; its process CPU time is appended to :data:`CPU_TIMES`."""
     from nrc.render.pt import PathTracer
 
     cfg.scene.integrator.spp, cfg.scene.integrator.seed = int(spp), int(seed)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     image = PathTracer(with_spp_seed(scene, spp, seed), cfg).render(progress=False).image
+    CPU_TIMES.append(time.process_time() - c0)
     return np.nan_to_num(image), time.perf_counter() - t0
 
 
@@ -188,26 +193,31 @@ def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
     if cfg.renderer.name == "pt":
         pt_warmup(scene, cfg)
         for spp in args.pt_spp:
-            frames, times = [], []
+            frames, times, cpu = [], [], []
             for j in range(args.repeats):
                 img, dt = pt_render(scene, cfg, spp, SEED_BASE + 100 * spp + j)
                 frames.append(img)
                 times.append(dt)
+                cpu.append(CPU_TIMES[-1])
             rows.append({"mode": "single", "config": name, "renderer": "pt", "spp": spp, "frames": 1,
-                         "time_s": float(np.mean(times)), **scorer.score(frames)})
+                         "time_s": float(np.mean(times)), "cpu_s": float(np.mean(cpu)), **scorer.score(frames)})
             log(rows[-1])
     else:
         for spp in args.nrc_spp:
-            frames, times = [], []
+            frames, times, cpu = [], [], []
+            clock = {"c": time.process_time()}
 
-            def cb(frame, image, accumulated, stats, frames=frames, times=times):
+            def cb(frame, image, accumulated, stats, frames=frames, times=times, cpu=cpu, clock=clock):
+                now = time.process_time()  # CPU time since the previous frame's callback: this frame's
                 if frame >= args.warmup:
                     frames.append(np.nan_to_num(np.asarray(image, np.float64)))
                     times.append(float(stats["time_frame_s"]))
+                    cpu.append(now - clock["c"])
+                clock["c"] = time.process_time()
 
             nrc_run(scene, cfg, spp, SEED_BASE + spp, args.warmup + args.frames, False, cb)
             rows.append({"mode": "single", "config": name, "renderer": "nrc", "spp": spp, "frames": 1,
-                         "time_s": float(np.mean(times)), **scorer.score(frames)})
+                         "time_s": float(np.mean(times)), "cpu_s": float(np.mean(cpu)), **scorer.score(frames)})
             log(rows[-1])
     return rows
 
@@ -303,8 +313,15 @@ def pareto(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
     return front
 
 
-def equal_time_ratios(rows: list[dict[str, Any]], baseline: str) -> list[dict[str, Any]]:
-    """NRC single-frame points against the baseline ``pt`` curve (its Pareto front) at the same time per frame."""
+def equal_time_ratios(rows: list[dict[str, Any]], baseline: str, clock: str = "time_s") -> list[dict[str, Any]]:
+    """NRC single-frame points against the baseline ``pt`` curve (its Pareto front) at the same time per frame.
+
+    ``clock``: ``time_s`` (wall time) or ``cpu_s`` (process CPU time, all threads: less sensitive to other
+    jobs on a shared machine).
+    """
+    if clock != "time_s":
+        sel = [r for r in rows if r.get(clock) is not None]
+        return equal_time_ratios([{**r, "time_s": r[clock]} for r in sel], baseline) if sel else []
     base = [r for r in rows if r["mode"] == "single" and r["config"] == baseline]
     out = []
     if len(base) == 0:
@@ -372,8 +389,10 @@ def write_outputs(out: Path, rows, ratios, cross, meta) -> None:
         w.writeheader()
         for r in rows:
             w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in FIELDS})
+    ratios_cpu = equal_time_ratios(rows, meta["baseline"], "cpu_s") if meta.get("baseline") else []
+    meta["equal_cpu_time"] = ratios_cpu
     (out / "summary.json").write_text(json.dumps({"meta": meta, "rows": rows, "equal_time": ratios,
-                                                  "crossover": cross}, indent=2))
+                                                  "equal_cpu_time": ratios_cpu, "crossover": cross}, indent=2))
     (out / "speed_vs_error.md").write_text(markdown(rows, ratios, cross, meta))
     plot(out / "speed_vs_error.png", rows, meta)
 
@@ -391,11 +410,11 @@ def markdown(rows, ratios, cross, meta) -> str:
         if not sel:
             continue
         lines += [f"**{title}**", "",
-                  "| config | spp/frame | frames | time (s) | relMSE medium | relMSE all | rel. bias medium | "
-                  "rel. variance medium | renders |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| config | spp/frame | frames | time (s) | CPU time (s) | relMSE medium | relMSE all | "
+                  "rel. bias medium | rel. variance medium | renders |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in sel:
-            lines.append(f"| {r['config']} | {r['spp']} | {r['frames']} | {r['time_s']:.3g} | "
+            lines.append(f"| {r['config']} | {r['spp']} | {r['frames']} | {r['time_s']:.3g} | {fmt(r.get('cpu_s'))} | "
                          f"{fmt(r.get('rel_mse_medium'))} | {fmt(r['rel_mse'])} | {fmt(r.get('bias_medium'))} | "
                          f"{fmt(r.get('variance_medium'))} | {r['renders']} |")
         lines.append("")
@@ -410,6 +429,16 @@ def markdown(rows, ratios, cross, meta) -> str:
             lines.append(f"| {q['config']} | {q['spp']} | {q['time_s']:.3g} | "
                          f"{fmt(q.get('pt_rel_mse_medium') and q['ratio_rel_mse_medium'] * q['pt_rel_mse_medium'])} | "
                          f"{fmt(q.get('pt_rel_mse_medium'))} | {fmt(q.get('ratio_rel_mse_medium'), 2)} | "
+                         f"{fmt(q.get('ratio_rel_mse'), 2)} | {fmt(q.get('ratio_rel_mse_medium_corr'), 2)} | "
+                         f"{'yes' if q.get('extrapolated') else 'no'} |")
+        lines.append("")
+    if meta.get("equal_cpu_time"):
+        lines += ["**Equal CPU time per frame** (process CPU time of all threads instead of wall time: less "
+                  "sensitive to other jobs on the machine):", "",
+                  "| config | CPU s/frame | ratio medium | ratio all | ratio medium, floor-corrected | PT extrapolated |",
+                  "|---|---:|---:|---:|---:|---|"]
+        for q in meta["equal_cpu_time"]:
+            lines.append(f"| {q['config']} | {q['time_s']:.3g} | {fmt(q.get('ratio_rel_mse_medium'), 2)} | "
                          f"{fmt(q.get('ratio_rel_mse'), 2)} | {fmt(q.get('ratio_rel_mse_medium_corr'), 2)} | "
                          f"{'yes' if q.get('extrapolated') else 'no'} |")
         lines.append("")

@@ -84,6 +84,7 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
         assert float(r["time_s"]) > 0 and float(r["rel_mse"]) >= 0 and r["rel_mse_medium"] != ""
     single_pt = [r for r in rows if r["config"] == "pt" and r["mode"] == "single"]
     assert [int(r["spp"]) for r in single_pt] == [1, 2] and all(float(r["variance"]) > 0 for r in single_pt)
+    assert all(float(r["cpu_s"]) > 0 for r in rows if r["mode"] == "single")
     assert [int(r["frames"]) for r in rows if r["config"] == "pt" and r["mode"] == "accumulate"] == [1, 2]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["meta"]["baseline"] == "pt" and summary["meta"]["rel_mse_floor"] > 0
@@ -96,4 +97,5 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
     assert sve.main(["--replot", str(out)]) == 0 and (out / "speed_vs_error.md").read_text() == md
     if nrc_available():
         assert len(summary["equal_time"]) == 1 and summary["equal_time"][0]["ratio_rel_mse"] > 0
+        assert len(summary["equal_cpu_time"]) == 1 and summary["equal_cpu_time"][0]["ratio_rel_mse"] > 0
         assert "Equal time per frame" in md
