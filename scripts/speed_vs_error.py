@@ -16,7 +16,7 @@ Two modes (``--mode single|accumulate|both``):
   variance across the frames (see ``nrc.metrics``). The equal-time ratio of an NRC configuration is its
   relMSE over the relMSE of the baseline ``pt`` curve (its Pareto front: the best relMSE reachable
   within a time) interpolated (log-log) at the same time per frame (extrapolated with slope -1,
-  relMSE ~ 1/spp, outside the measured range).
+  relMSE ~ 1/spp, beyond the slowest point; flat, the fastest frame's error, before the fastest point).
 * **accumulate** (static camera; the ``--acc-configs``). ``pt`` accumulates ``--acc-pt-spp``-spp frames,
   NRC accumulates its 1-spp frames (``renderer.accumulate=true``, training continues, counted from a
   cold cache); the error of the
@@ -279,12 +279,17 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
 
 # ---------------------------------------------------------------------------- analysis
 def loglog_interp(t: float, ts: list[float], es: list[float]) -> float:
-    """``e(t)`` on the curve ``(ts, es)``, linear in log-log; slope -1 (error ~ 1/time) beyond its ends."""
+    """``e(t)`` on the curve ``(ts, es)``, linear in log-log.
+
+    Beyond its last point: slope -1 (an unbiased renderer's error ~ 1/time). Before its first point: flat,
+    the error of the fastest measured frame: a path tracer cannot render a full frame faster than with
+    its smallest spp, and assuming it could (slope -1) would flatter any faster competitor.
+    """
     order = np.argsort(ts)
     lt, le = np.log(np.asarray(ts)[order]), np.log(np.asarray(es)[order])
     x = math.log(t)
     if x <= lt[0]:
-        return float(math.exp(le[0] - (x - lt[0])))
+        return float(math.exp(le[0]))
     if x >= lt[-1]:
         return float(math.exp(le[-1] - (x - lt[-1])))
     return float(math.exp(np.interp(x, lt, le)))
@@ -420,7 +425,8 @@ def markdown(rows, ratios, cross, meta) -> str:
         lines.append("")
     if ratios:
         lines += [f"**Equal time per frame**: NRC relMSE over the `{meta['baseline']}` relMSE interpolated (log-log) "
-                  "at the NRC time per frame (extrapolated with relMSE ~ 1/time outside the measured spp range).", "",
+                  "at the NRC time per frame (beyond PT's slowest point extrapolated with relMSE ~ 1/time; below its fastest "
+                  "frame, PT's fastest frame's error: a frame cannot take less than PT's smallest spp).", "",
                   "The corrected ratio subtracts the reference's noise floor from both relMSEs first.", "",
                   "| config | spp/frame | time/frame (s) | NRC relMSE medium | PT relMSE medium at equal time | "
                   "ratio medium | ratio all | ratio medium, floor-corrected | PT extrapolated |",

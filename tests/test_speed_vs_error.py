@@ -41,7 +41,7 @@ def test_pareto_and_loglog_interpolation(sve):
     ts, es = [1.0, 4.0], [1.0, 0.25]
     assert sve.loglog_interp(2.0, ts, es) == pytest.approx(0.5)
     assert sve.loglog_interp(8.0, ts, es) == pytest.approx(0.125)  # slope -1 beyond the end
-    assert sve.loglog_interp(0.5, ts, es) == pytest.approx(2.0)
+    assert sve.loglog_interp(0.5, ts, es) == pytest.approx(1.0)  # flat before the fastest point
 
 
 def test_equal_time_ratio_and_crossover(sve):
