@@ -69,7 +69,7 @@ class NRCSettings:
                 height=tr.get_int("height", 128, lo=1),
                 records_per_path=tr.get_int("records_per_path", 4, lo=1),
                 extra_vertices=tr.get_int("extra_vertices", 3, lo=0),
-                unbiased_fraction=tr.get_float("unbiased_fraction", 1 / 16, lo=0.0, hi=1.0),
+                unbiased_fraction=tr.get_float("unbiased_fraction", 0.25, lo=0.0, hi=1.0),
                 ring_buffer=tr.get_int("ring_buffer", 1 << 18, lo=1),
             ),
             inference_batch=inf.get_int("batch_size", 1 << 14, lo=1),
