@@ -386,8 +386,20 @@ def fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
+def black_baseline(ref_path: Path) -> dict[str, float]:
+    """relMSE of an all-black image against the reference: what a renderer that gives up scores."""
+    ref = read_reference(ref_path)
+    black = np.zeros_like(ref.image)
+    m = medium_mask(ref.alpha) if ref.alpha is not None else None
+    return {"rel_mse": rel_mse(black, ref.image),
+            "rel_mse_medium": rel_mse(black, ref.image, m) if m is not None and m.any() else None}
+
+
 def write_outputs(out: Path, rows, ratios, cross, meta) -> None:
     out.mkdir(parents=True, exist_ok=True)
+    if "black" not in meta:
+        ref_path = Path(meta["reference"])
+        meta["black"] = black_baseline(ref_path if ref_path.is_absolute() else REPO / ref_path)
     add_corrected(rows, meta["rel_mse_floor"], meta["rel_mse_floor_medium"])
     with open(out / "speed_vs_error.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=FIELDS, extrasaction="ignore")
@@ -408,7 +420,10 @@ def markdown(rows, ratios, cross, meta) -> str:
              f"pixels, {fmt(meta['rel_mse_floor_medium'])} over the medium, to every relMSE below). "
              f"Medium pixels: {meta['medium_pixels']} of {meta['width'] * meta['height']}. "
              f"Machine: {meta['machine']}. Wall time of the whole run: {meta['wall_time_s']:.0f} s. "
-             f"NRC settings added to every NRC config: `{' '.join(meta['nrc_overrides'])}`. Code: {meta['git']}.", ""]
+             f"NRC settings added to every NRC config: `{' '.join(meta['nrc_overrides'])}`. Code: {meta['git']}.", "",
+             f"Sanity baseline: an all-black image scores relMSE {fmt(meta['black']['rel_mse_medium'])} over the "
+             f"medium pixels ({fmt(meta['black']['rel_mse'])} over all): a renderer below that is not necessarily "
+             "right, and one above it is noisier than giving up.", ""]
     for mode, title in (("single", "Single frames (time = wall time per frame)"),
                         ("accumulate", "Accumulated frames, static camera (time = cumulative wall time)")):
         sel = [r for r in rows if r["mode"] == mode]
