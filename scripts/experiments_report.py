@@ -340,7 +340,7 @@ BUILDERS = {
 
 
 SPEED_RUNS = [("160 x 90", "speed_160x90"), ("480 x 270", "speed_480x270_b"),
-              ("80 x 45, accumulated frames", "speed_80x45_accumulate")]
+              ("80 x 45, accumulated frames", "speed_80x45_accumulate_long")]
 HEADLINE = "nrc_hashgrid"  # the NRC configuration of the headline ratio
 
 
@@ -353,7 +353,7 @@ def _speed_section(docs: Path, label: str, name: str) -> tuple[list[str], dict |
     argv = " ".join(meta.get("argv") or [])
     lines = [f"### {label}", "",
              f"Command (repo root): `python scripts/speed_vs_error.py {argv}` — took {meta['wall_time_s']:.0f} s. "
-             f"Files: [`CSV`]({name}/speed_vs_error.csv), [`summary.json`]({name}/summary.json).", "",
+             f"Files: [`CSV`](results/{name}/speed_vs_error.csv), [`summary.json`](results/{name}/summary.json).", "",
              (d / "speed_vs_error.md").read_text(), "", f"![speed vs error {label}](results/{name}/speed_vs_error.png)", ""]
     return lines, summary
 

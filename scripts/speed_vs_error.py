@@ -481,7 +481,7 @@ def plot(path: Path, rows, meta) -> None:
     import matplotlib.pyplot as plt
 
     modes = [m for m in ("single", "accumulate") if any(r["mode"] == m for r in rows)]
-    fig, axes = plt.subplots(1, len(modes), figsize=(6.4 * len(modes), 4.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(modes), figsize=(7.6 * len(modes), 4.8), squeeze=False)
     key = "rel_mse_medium" if any(r.get("rel_mse_medium") is not None for r in rows) else "rel_mse"
     floor = meta["rel_mse_floor_medium"] if key == "rel_mse_medium" else meta["rel_mse_floor"]
     for ax, mode in zip(axes[0], modes):
@@ -496,7 +496,7 @@ def plot(path: Path, rows, meta) -> None:
         ax.set_title(f"{'single frames' if mode == 'single' else 'accumulated, static camera'} — "
                      f"{meta['width']}x{meta['height']}")
         ax.grid(True, which="both", lw=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
