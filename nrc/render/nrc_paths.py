@@ -44,15 +44,12 @@ from nrc.render.camera import Camera
 from nrc.render.pt import power_heuristic
 from nrc.render.sampler import RandomSource
 from nrc.render.termination import Termination
+from nrc.render.wavefront import refill_or_compact
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.phase import hg_pdf, hg_sample
 from nrc.transport.free_flight import delta_tracking_step
 from nrc.volume.majorant import MajorantGrid
-
-_FIELDS = ("pid", "dest", "o", "d", "t", "t_max", "beta", "n", "pdf", "extra", "never", "n_term", "rec_base",
-           "spread", "a0", "x_prev")
-
 
 @dataclass
 class PathSet:
@@ -298,20 +295,8 @@ class NRCPathTracer:
 
             done = finished.nonzero().squeeze(1)
             if len(done):
-                k = min(len(done), total - next_id)
-                if k:
-                    fresh = self._new_paths(torch.arange(next_id, next_id + k, device=dev), ps, rng, n_rows)
-                    slots = done[:k]
-                    for f in _FIELDS:
-                        s[f][slots] = fresh[f]
-                    trav.restart(slots, fresh["o"], fresh["d"], fresh["t"], fresh["t_max"])
-                    next_id += k
-                    done = done[k:]
-                if len(done):
-                    keep = torch.ones(len(s["pid"]), dtype=torch.bool, device=dev)
-                    keep[done] = False
-                    s = {f: v[keep] for f, v in s.items()}
-                    trav.select(keep)
+                s, next_id = refill_or_compact(s, trav, done, next_id, total,
+                                               lambda ids: self._new_paths(ids, ps, rng, n_rows))
         flush()
 
         def cat(name: str, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:

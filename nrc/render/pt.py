@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from nrc.errors import ConfigError
 from nrc.render.result import RenderResult
+from nrc.render.wavefront import refill_or_compact
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.phase import hg_pdf, hg_sample
@@ -50,7 +51,6 @@ from nrc.volume.majorant import MajorantGrid
 log = logging.getLogger(__name__)
 
 BACKENDS = ("auto", "eager", "compiled")
-_FIELDS = ("pix", "o", "d", "t", "t_max", "beta", "n", "pdf")
 
 
 def power_heuristic(a: Tensor, b: Tensor) -> Tensor:
@@ -304,20 +304,7 @@ class PathTracer:
             done = finished.nonzero().squeeze(1)
             if len(done):
                 bar.update(len(done))
-                k = min(len(done), total - next_id)
-                if k:
-                    fresh = self._camera_paths(torch.arange(next_id, next_id + k, device=dev), gen)
-                    slots = done[:k]
-                    for f in _FIELDS:
-                        s[f][slots] = fresh[f]
-                    trav.restart(slots, fresh["o"], fresh["d"], fresh["t"], fresh["t_max"])
-                    next_id += k
-                    done = done[k:]
-                if len(done):
-                    keep = torch.ones(len(s["pix"]), dtype=torch.bool, device=dev)
-                    keep[done] = False
-                    s = {f: v[keep] for f, v in s.items()}
-                    trav.select(keep)
+                s, next_id = refill_or_compact(s, trav, done, next_id, total, lambda ids: self._camera_paths(ids, gen))
             timers["refill"] += time.perf_counter() - t_rf
         self._flush_shadows(shadow_q, image, gen, timers, counts)
         bar.close()
