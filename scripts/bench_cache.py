@@ -158,7 +158,7 @@ def run(widths: list[int], depths: list[int], reps: int, device: str, command: s
         f"call(s) after one warm-up call; {elapsed:.0f} s in total; 1-minute load average {load_before:.1f} "
         f"before, {load_after:.1f} after: other processes on the machine slow the numbers down).",
         "",
-        f"Thousands of points per second at 2^16 points per call. Columns: MLP width x hidden layers. "
+        "Thousands of points per second at 2^16 points per call. Columns: MLP width x hidden layers. "
         "Position encodings: T = triangle wave, F = frequency (sin, cos), n = frequencies; HG = hash grid, "
         "n = levels, F = 2, T = 2^19, N_min = 16, per-level scale 2. Direction: one-blob, 4 bins (OB4), "
         "on the spherical angles. No extra inputs. On a machine shared with other jobs repeated runs differ "

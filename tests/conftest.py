@@ -85,3 +85,19 @@ def block_stats(images: list[np.ndarray], block: int) -> tuple[np.ndarray, np.nd
     blocks = stack[:, : h // block * block, : w // block * block].reshape(r, h // block, block, w // block, block, c)
     per_render = blocks.mean(axis=(2, 4))
     return per_render.mean(0), per_render.std(0, ddof=1) / np.sqrt(r)
+
+
+def assert_images_agree(a: list[np.ndarray], b: list[np.ndarray], block: int = 4) -> None:
+    """Two renderers agree within Monte Carlo error over independent renders (seeds) of each.
+
+    Block means within 4.5 standard errors (for 16x8 images: 2 x 4 blocks x 3 channels = 24 comparisons),
+    image means within 4 (standard errors from the spread over renders).
+    """
+    m_a, se_a = block_stats(a, block)
+    m_b, se_b = block_stats(b, block)
+    z = (m_a - m_b) / np.maximum(np.sqrt(se_a**2 + se_b**2), 1e-6 * np.abs(m_b).max())
+    assert np.abs(z).max() < 4.5, f"max |z| = {np.abs(z).max():.2f}"
+    mean_a, mean_b = (np.array([im.mean() for im in ims]) for ims in (a, b))
+    se_mean = np.sqrt((mean_a.var(ddof=1) + mean_b.var(ddof=1)) / len(a))
+    assert abs(mean_a.mean() - mean_b.mean()) < 4 * se_mean
+    assert mean_b.mean() > 0

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import block_stats, compose
+from conftest import assert_images_agree, compose
 from nrc.errors import ConfigError
 from nrc.render.inference_filter import filtered_query
 from nrc.render.nrc import NRCRenderer
@@ -71,19 +71,6 @@ def render_images(cfg_overrides: list[str], seeds: int, renderer: str, cache_fn=
     return images
 
 
-def assert_agree(a: list[np.ndarray], b: list[np.ndarray], block: int = 4) -> None:
-    """Block means agree within 4.5 standard errors (spread over independent renders; 8 blocks x 3 channels
-    with 8 renders each), image means within 4."""
-    m_a, se_a = block_stats(a, block)
-    m_b, se_b = block_stats(b, block)
-    z = (m_a - m_b) / np.maximum(np.sqrt(se_a**2 + se_b**2), 1e-6 * np.abs(m_b).max())
-    assert np.abs(z).max() < 4.5, f"max |z| = {np.abs(z).max():.2f}"
-    mean_a, mean_b = (np.array([im.mean() for im in ims]) for ims in (a, b))
-    se = np.sqrt((mean_a.var(ddof=1) + mean_b.var(ddof=1)) / len(a))
-    assert abs(mean_a.mean() - mean_b.mean()) < 4 * se
-    assert mean_b.mean() > 0
-
-
 def sun_oracle(scene):
     """Exact ``L_s(x, d)`` at a path's last allowed vertex under one sun: single scattering towards the sun."""
     (sun,) = scene.lights
@@ -108,7 +95,7 @@ def test_oracle_cache_makes_nrc_unbiased():
     pt = render_images([*common, "scene.integrator.spp=16"], SEEDS, "pt")
     nrc = render_images([*common, "scene.integrator.spp=16", "renderer.termination.min_vertices=2",
                          "renderer.termination.p_continue=0.5"], SEEDS, "nrc", sun_oracle)
-    assert_agree(nrc, pt)
+    assert_images_agree(nrc, pt)
 
 
 def test_zero_cache_is_a_truncated_path_tracer():
@@ -118,7 +105,7 @@ def test_zero_cache_is_a_truncated_path_tracer():
     pt = render_images([*common, "scene.integrator.max_scatter=2"], SEEDS, "pt")
     nrc = render_images([*common, "renderer.termination.min_vertices=3"], SEEDS, "nrc",
                         lambda scene: lambda x, d: torch.zeros_like(x))
-    assert_agree(nrc, pt)
+    assert_images_agree(nrc, pt)
 
 
 class ConstantRandom(RandomSource):

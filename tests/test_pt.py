@@ -1,6 +1,5 @@
 """Path tracer: analytic render-level checks, furnace test, determinism and hard cases."""
 
-import math
 
 import numpy as np
 import pytest

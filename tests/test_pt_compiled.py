@@ -7,27 +7,15 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import compose, hard_rays, spike_grid, unit
+from conftest import hard_rays, spike_grid, unit
+from test_pt import make
 from nrc.errors import ConfigError
 from nrc.render import pt_compiled as pc
-from nrc.render.pt import PathTracer
-from nrc.scene import load_scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.lights import PointLight
 from nrc.transport.phase import hg_sample
 from nrc.transport.rng import hash32, path_key, uniforms
 from nrc.volume.grid import DensityGrid
-
-
-def make(overrides, density=None):
-    """A PathTracer (and scene) for a composed config; ``density`` replaces the grid (same placement keys)."""
-    cfg = compose(["renderer=pt", "scene.volume.procedural.resolution=16", *overrides])
-    scene = load_scene(cfg.scene)
-    if density is not None:
-        v = cfg.scene.volume
-        grid = DensityGrid(density, tuple(v.center), v.diagonal, v.density_scale)
-        scene = type(scene)(grid, scene.albedo, scene.g, scene.camera, scene.lights, scene.integrator)
-    return PathTracer(scene, cfg), scene
 
 
 def render_sm(pt):
@@ -228,23 +216,6 @@ def test_state_machine_matches_mitsuba(preset, single_thread):
     bridge = pytest.importorskip("nrc.render.mitsuba_bridge")
     if not bridge.mitsuba_available():
         pytest.skip("Mitsuba 3 is not installed")
-    from test_pt_vs_mitsuba import SEEDS, block_stats
+    from test_pt_vs_mitsuba import compare_with_mitsuba
 
-    overrides = [
-        "renderer=pt", f"scene={preset}", *CASES[preset], "scene.volume.procedural.resolution=24",
-        "scene.camera.width=16", "scene.camera.height=8", "scene.integrator.spp=256",
-        "scene.integrator.max_scatter=6", "scene.volume.g=0.6", "scene.volume.albedo=0.9",
-    ]
-    ours, theirs = [], []
-    for seed in range(SEEDS):
-        cfg = compose([*overrides, f"scene.integrator.seed={seed}"])
-        scene = load_scene(cfg.scene)
-        ours.append(render_sm(PathTracer(scene, cfg)).image)
-        theirs.append(bridge.render_mitsuba(scene, seed=seed)[0])
-    m_a, se_a = block_stats(ours, 4)
-    m_b, se_b = block_stats(theirs, 4)
-    z = (m_a - m_b) / np.maximum(np.sqrt(se_a**2 + se_b**2), 1e-6 * np.abs(m_b).max())
-    assert np.abs(z).max() < 4.5, f"max |z| = {np.abs(z).max():.2f}"
-    mean_a, mean_b = [np.array([im.mean() for im in ims]) for ims in (ours, theirs)]
-    se_mean = np.sqrt((mean_a.var(ddof=1) + mean_b.var(ddof=1)) / SEEDS)
-    assert abs(mean_a.mean() - mean_b.mean()) < 4 * se_mean
+    compare_with_mitsuba(CASES[preset], preset, render=render_sm)

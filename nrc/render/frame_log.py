@@ -43,7 +43,7 @@ class FrameLog:
             if key.startswith("time_") and key.endswith("_s"):
                 self.writer.add_scalar(f"time/{key[5:-2]}", value, frame)
             elif key in ("loss", "rel_mse", "mse") and value is not None:
-                self.writer.add_scalar(f"loss/frame" if key == "loss" else f"error/{key}", value, frame)
+                self.writer.add_scalar("loss/frame" if key == "loss" else f"error/{key}", value, frame)
         if self.image_every and frame % self.image_every == 0:
             for name, img in images.items():
                 self.writer.add_image(f"image/{name}", tonemap(img, self.exposure), frame, dataformats="HWC")
