@@ -340,6 +340,7 @@ BUILDERS = {
 
 
 SPEED_RUNS = [("160 x 90", "speed_160x90"), ("160 x 90, quiet machine, 30 warm-up frames", "speed_160x90_quiet"),
+              ("480 x 270, quiet machine, 30 warm-up frames, 128-spp reference", "speed_480x270_quiet"),
               ("480 x 270", "speed_480x270_b"), ("80 x 45, accumulated frames", "speed_80x45_accumulate_long")]
 HEADLINE = "nrc_hashgrid"  # the NRC configuration of the headline ratio
 
