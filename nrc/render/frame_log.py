@@ -1,8 +1,9 @@
 """Per-frame logging of the NRC renderer: TensorBoard scalars and images, and the run's history.
 
 TensorBoard tags: ``loss/step`` (every training step), ``loss/frame`` (mean per frame), ``time/<stage>``
-for ``trace``, ``infer``, ``train`` and ``frame`` (seconds), ``error/rel_mse`` and ``error/mse`` when a
-reference is given, and ``image/frame`` / ``image/output`` (tone-mapped) every ``image_every`` frames.
+for ``trace`` (with its parts ``free_flight`` and ``shadow``), ``infer``, ``train`` and ``frame``
+(seconds), ``error/rel_mse`` and ``error/mse`` when a reference is given, and ``image/frame`` /
+``image/output`` (tone-mapped) every ``image_every`` frames.
 """
 
 from __future__ import annotations

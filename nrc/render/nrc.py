@@ -47,11 +47,11 @@ from nrc.render.result import RenderResult
 from nrc.render.ring_buffer import RingBuffer, TrainingRecords
 from nrc.render.sampler import RandomSource
 from nrc.render.training_set import frame_records, training_positions, training_targets
+from nrc.render.wavefront import wavefront_majorants
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.lights import DirectionalLight
 from nrc.transport.transmittance import make_transmittance
-from nrc.volume.majorant import MajorantGrid
 
 FrameCallback = Callable[[int, np.ndarray, np.ndarray, dict[str, Any]], None]
 
@@ -94,9 +94,7 @@ class NRCRenderer:
         tr = st.training
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(tr.ring_buffer, self.device)
-        brick = MajorantGrid.auto_brick(scene.grid) if st.brick == "auto" else int(st.brick)
-        majorants = MajorantGrid(scene.grid, brick)
-        tracking = majorants if st.free_flight == "brick" else MajorantGrid(scene.grid, 0)
+        majorants, tracking = wavefront_majorants(scene.grid, st.brick, st.free_flight)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
         self.tracer = NRCPathTracer(scene, majorants, tracking, self.transmittance, st.termination,
                                     tr.records_per_path, tr.extra_vertices, st.slots, st.shadow_batch)
@@ -192,7 +190,7 @@ class NRCRenderer:
             "loss": float(np.mean(losses)) if losses else None,
             "train_batches": len(batches), "train_records_valid": int(valid.sum()),
             "training_pixels_scattering": int(trace.scattered.sum()),
-            **trace.counts, **infer_counts,
+            **{f"time_{k}_s": v for k, v in trace.timers.items()}, **trace.counts, **infer_counts,
         }
         return image, stats, losses
 

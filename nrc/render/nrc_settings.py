@@ -10,7 +10,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from nrc.cache.config import ConfigReader
-from nrc.errors import ConfigError
 from nrc.render.termination import Termination
 
 ANIMATIONS = ("none", "orbit", "sun")
@@ -54,14 +53,11 @@ class NRCSettings:
     def from_config(cls, renderer: Any) -> NRCSettings:
         cfg = ConfigReader(renderer, "renderer")
         cfg.get_choice("name", ["nrc"])
-        brick = cfg.get_raw("brick", "auto")
-        if brick != "auto" and (isinstance(brick, bool) or not isinstance(brick, int) or brick < 1):
-            raise ConfigError(f"renderer.brick must be 'auto' or an integer >= 1, got {brick!r}")
         tr, inf, anim, log = cfg.block("training"), cfg.block("inference"), cfg.block("animate"), cfg.block("log")
         settings = cls(
             slots=cfg.get_int("slots", 1 << 16, lo=1),
             shadow_batch=cfg.get_int("shadow_batch", 1 << 17, lo=1),
-            brick=brick,
+            brick=cfg.get_raw("brick", "auto"),  # validated by nrc.render.wavefront.wavefront_majorants
             free_flight=cfg.get_choice("free_flight", ["brick", "global"], "brick"),
             termination=Termination.from_config(cfg.block("termination")),
             training=TrainingSettings(

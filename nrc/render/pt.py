@@ -40,13 +40,12 @@ from tqdm import tqdm
 
 from nrc.errors import ConfigError
 from nrc.render.result import RenderResult
-from nrc.render.wavefront import refill_or_compact
+from nrc.render.wavefront import refill_or_compact, wavefront_majorants
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.phase import hg_pdf, hg_sample
 from nrc.transport.free_flight import delta_tracking_step
 from nrc.transport.transmittance import make_transmittance
-from nrc.volume.majorant import MajorantGrid
 
 log = logging.getLogger(__name__)
 
@@ -81,19 +80,9 @@ class PathTracer:
         rr = r.get("russian_roulette") or {}
         self.rr_enabled = bool(rr.get("enabled", False))
         self.rr_start = int(rr.get("start", 8))
-        brick = r.get("brick", "auto")
-        if brick == "auto":
-            brick = MajorantGrid.auto_brick(scene.grid)
-        elif isinstance(brick, bool) or not isinstance(brick, int) or brick < 1:
-            raise ConfigError(f"renderer.brick must be 'auto' or an integer >= 1, got {brick!r}")
-        self.majorants = MajorantGrid(scene.grid, brick)
-        # Free flights use the brick majorants ("brick") or one majorant for the whole box ("global",
-        # the same DDA code over a single brick).
-        mode = r.get("free_flight", "brick")
-        if mode not in ("brick", "global"):
-            raise ConfigError(f"renderer.free_flight must be 'brick' or 'global', got {mode!r}")
-        self.free_flight = mode
-        self.tracking_majorants = self.majorants if mode == "brick" else MajorantGrid(scene.grid, 0)
+        self.free_flight = r.get("free_flight", "brick")
+        self.majorants, self.tracking_majorants = wavefront_majorants(scene.grid, r.get("brick", "auto"),
+                                                                      self.free_flight)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
         self.lights = LightSampler(scene.lights, self.device)
         self.spp = scene.integrator.spp

@@ -8,11 +8,14 @@ empty, finished slots are dropped (compaction), so every remaining row is a live
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from nrc.volume.majorant import BrickTraversal
+from nrc.errors import ConfigError
+from nrc.volume.grid import DensityGrid
+from nrc.volume.majorant import BrickTraversal, MajorantGrid
 
 
 def refill_or_compact(s: dict[str, Tensor], trav: BrickTraversal, done: Tensor, next_id: int, total: int,
@@ -44,3 +47,23 @@ def refill_or_compact(s: dict[str, Tensor], trav: BrickTraversal, done: Tensor, 
         s = {name: value[keep] for name, value in s.items()}
         trav.select(keep)
     return s, next_id
+
+
+def wavefront_majorants(grid: DensityGrid, brick: Any, free_flight: str) -> tuple[MajorantGrid, MajorantGrid]:
+    """``(majorants, tracking_majorants)`` of a wavefront renderer from ``renderer.brick`` / ``renderer.free_flight``.
+
+    ``brick`` is ``'auto'`` (:meth:`MajorantGrid.auto_brick`) or an edge in voxels; shadow rays always use
+    these brick majorants. Free flights use them too (``free_flight='brick'``) or one majorant for the whole
+    box (``'global'``: the same DDA code over a single brick).
+
+    Raises:
+        nrc.errors.ConfigError: ``brick`` or ``free_flight`` is invalid (the message names the key).
+    """
+    if brick == "auto":
+        brick = MajorantGrid.auto_brick(grid)
+    elif isinstance(brick, bool) or not isinstance(brick, int) or brick < 1:
+        raise ConfigError(f"renderer.brick must be 'auto' or an integer >= 1, got {brick!r}")
+    if free_flight not in ("brick", "global"):
+        raise ConfigError(f"renderer.free_flight must be 'brick' or 'global', got {free_flight!r}")
+    majorants = MajorantGrid(grid, brick)
+    return majorants, (majorants if free_flight == "brick" else MajorantGrid(grid, 0))
