@@ -45,7 +45,7 @@ def config(args: argparse.Namespace, spp: int, width: int, height: int):
         f"scene.integrator.spp={spp}", f"scene.camera.width={width}", f"scene.camera.height={height}",
         f"renderer.free_flight={args.free_flight}", f"transmittance={args.transmittance}",
         "renderer.russian_roulette.enabled=false", f"renderer.backend={args.backend}",
-        f"renderer.slots={args.slots}", f"renderer.steps_per_call={args.steps_per_call}",
+        f"renderer.slots={args.slots}", f"renderer.steps_per_call={args.steps_per_call}", f"renderer.brick={args.brick}",
     ]
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         return compose(config_name="config", overrides=overrides)
@@ -62,6 +62,7 @@ def main() -> None:
     ap.add_argument("--steps-per-call", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=1, help="timed renders of each renderer (best and range printed)")
     ap.add_argument("--free-flight", default="brick", choices=["brick", "global"])
+    ap.add_argument("--brick", default="auto", help="majorant brick edge in voxels, or auto")
     ap.add_argument("--transmittance", default="ratio")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-mitsuba", action="store_true")

@@ -13,7 +13,7 @@ if not mitsuba_bridge.mitsuba_available():
 
 pytestmark = pytest.mark.mitsuba
 
-SEEDS = 4
+SEEDS = 4  # independent renders per side: the standard errors come from their spread
 
 
 # A point light inside the medium makes next-event estimation heavy-tailed (the 1/r^2 of vertices next to
@@ -40,15 +40,17 @@ def test_pt_matches_mitsuba_under_a_latlong_environment(tmp_path):
     compare_with_mitsuba(["scene.lights.0.radiance=null", f"+scene.lights.0.path={tmp_path / 'env.exr'}"], "sky")
 
 
-def compare_with_mitsuba(extra: list[str], preset: str, render=lambda tracer: tracer.render()) -> None:
-    """``render(PathTracer)`` against Mitsuba on a small scene, over SEEDS independent renders of each."""
+def compare_with_mitsuba(extra: list[str], preset: str, render=lambda tracer: tracer.render(),
+                         seeds: int = SEEDS) -> None:
+    """``render(PathTracer)`` against Mitsuba on a small scene, over ``seeds`` independent renders of each (the
+    standard errors come from their spread: Welch's t with about ``2 seeds - 2`` degrees of freedom)."""
     overrides = [
         "renderer=pt", f"scene={preset}", *extra, "scene.volume.procedural.resolution=24",
         "scene.camera.width=16", "scene.camera.height=8", "scene.integrator.spp=256",
         "scene.integrator.max_scatter=6", "scene.volume.g=0.6", "scene.volume.albedo=0.9",
     ]
     ours, theirs = [], []
-    for seed in range(SEEDS):
+    for seed in range(seeds):
         cfg = compose([*overrides, f"scene.integrator.seed={seed}"])
         scene = load_scene(cfg.scene)
         ours.append(render(PathTracer(scene, cfg)).image)

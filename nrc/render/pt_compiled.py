@@ -12,8 +12,11 @@ execution only:
   delta-tracking step of the free flight. A real collision queues the vertex's shadow ray in the same slot
   (its contribution weight is known at the vertex; the transmittance multiplies it when the ray finishes) and
   samples the continuation, which resumes once the shadow ray is done.
-* **Global majorant** for both estimators (``max sigma_t``; the trilinear field never exceeds it, so no check
-  is needed), so a step is the same branch-free arithmetic for every slot.
+* **Brick majorants without traversal state** (:class:`BrickTables`): each step looks up the brick its ray is
+  in from the current point and either samples a tentative collision against that brick's majorant or moves
+  the ray to the brick's exit (empty bricks cost one step each, never a density lookup that matters), so a
+  step is the same branch-free arithmetic for every slot. The grids are the eager tracer's
+  (``renderer.brick``, ``renderer.free_flight``); shadow rays always use the bricks.
 * **Counter-based RNG** (:mod:`nrc.transport.rng`): the numbers of a path depend on ``(seed, sample id, step
   counter)`` only, so the image does not depend on the number of slots or on the refill cadence.
 * **Scattering** is a second compiled function run after each tracking call on the slots that met a real
@@ -47,6 +50,7 @@ from nrc.transport.light_sampling import LightSampler
 from nrc.transport.phase import hg_pdf, hg_sample_cos
 from nrc.transport.rng import path_key, uniforms
 from nrc.volume.grid import DensityGrid
+from nrc.volume.majorant import MajorantGrid
 
 if TYPE_CHECKING:  # pragma: no cover
     from nrc.render.pt import PathTracer
@@ -59,7 +63,6 @@ NF = 24
 # slot holds an unharvested path, shadow steps taken
 _PIX, _KEY, _CNT, _N, _FF, _SH, _OCC, _NSH = range(8)
 NI = 8
-MAX_CROSSING_STEPS = 2000  # denser media (global majorant x box diagonal) stay on the eager brick DDA
 REFILL_EVERY = 4  # calls between refills while the camera queue lasts (finished slots idle ~1.5 steps)
 MIN_SLOTS = 64  # compaction never goes below this (dynamic-shape kernels specialise sizes 0 and 1)
 
@@ -115,6 +118,52 @@ def box_exit(lo: tuple[float, float, float], hi: tuple[float, float, float], o: 
         t_far = tmax if t_far is None else torch.minimum(t_far, tmax)
     t_near = t_near.clamp(min=0.0)
     return torch.where(t_far > t_near, t_far, torch.zeros_like(t_far))
+
+
+class BrickTables:
+    """The majorant grids of a tracer in the step's form: flat per-brick majorants and per-grid constants.
+
+    Table 0 serves free flights and table 1 shadow rays (one table when both use the same grid, i.e.
+    ``renderer.free_flight=brick``; with ``global`` free flights use a single box-sized brick). A step finds
+    a ray's brick from its current point, nudged ``1e-4`` brick edges along the ray (a point on a face
+    belongs to the brick it enters), and the distance to that brick's exit. No traversal state is carried
+    between steps, so refills, shadow rays and compaction need no bookkeeping.
+
+    Args:
+        free_flight, shadow: the :class:`~nrc.volume.majorant.MajorantGrid` of each kind of ray.
+    """
+
+    def __init__(self, free_flight: MajorantGrid, shadow: MajorantGrid) -> None:
+        grids = [free_flight] if shadow is free_flight else [free_flight, shadow]
+        self.flat = torch.cat([g.majorant.reshape(-1) for g in grids]).float().contiguous()
+        # per table and axis: origin, last brick index, flat stride; per table: brick edge, offset into flat
+        self.origin = [tuple(float(v) for v in g.origin.tolist()) for g in grids]
+        self.last = [tuple(float(n - 1) for n in g.shape) for g in grids]
+        self.stride = [(g.shape[1] * g.shape[2], g.shape[2], 1) for g in grids]
+        self.size = [float(g.brick_size) for g in grids]
+        self.offset = [0, free_flight.majorant.numel()][: len(grids)]
+
+    def segment(self, o: V3, d: V3, t: Tensor, shadow: Tensor) -> tuple[Tensor, Tensor]:
+        """``(majorant, t_exit)`` ``(S,)`` of the brick each ray ``o + t d`` is in at ``t`` (``shadow`` picks
+        table 1 per slot); ``t_exit > t`` always (a ray on a face moves on by the nudge)."""
+        two = len(self.size) == 2
+
+        def per_slot(values: list[Any]) -> Any:
+            return torch.where(shadow, values[1], values[0]) if two else values[0]
+
+        size = per_slot(self.size)
+        tn = t + size * 1e-4
+        idx = per_slot(self.offset)
+        t_exit = None
+        for a in range(3):
+            org = per_slot([v[a] for v in self.origin])
+            c = ((o[a] + tn * d[a] - org) / size).floor().nan_to_num(0.0, 0.0, 0.0).clamp(min=0.0)
+            c = torch.minimum(c, torch.full_like(c, self.last[0][a]) if not two else per_slot([v[a] for v in self.last]))
+            bound = org + (c + (d[a] > 0).to(c.dtype)) * size
+            tb = torch.where(d[a] != 0, (bound - o[a]) / d[a], torch.full_like(t, math.inf))
+            t_exit = tb if t_exit is None else torch.minimum(t_exit, tb)
+            idx = idx + c.long() * per_slot([v[a] for v in self.stride])
+        return self.flat[idx], torch.maximum(t_exit, tn)
 
 
 def hg_sample3(g: float, d: V3, u0: Tensor, u1: Tensor) -> tuple[V3, Tensor]:
@@ -212,7 +261,8 @@ class WavefrontStep:
     few loops over the slots.
 
     Args:
-        grid: the density grid; lights: the light sampler; albedo, g: medium; max_scatter: integrator limit;
+        grid: the density grid; bricks: its majorant tables (free flights, shadow rays); lights: the light
+        sampler; albedo, g: medium; max_scatter: integrator limit;
         roulette_threshold: ratio-tracking roulette (0 = off); rr_start: Russian roulette from this many
         scattering events on (``None`` = off).
     """
@@ -220,6 +270,7 @@ class WavefrontStep:
     def __init__(
         self,
         grid: DensityGrid,
+        bricks: BrickTables,
         lights: LightSampler,
         albedo: float,
         g: float,
@@ -231,7 +282,7 @@ class WavefrontStep:
         self.lo = tuple(float(v) for v in grid.box.lo.tolist())
         self.hi = tuple(float(v) for v in grid.box.hi.tolist())
         self.scale = float(grid.density_scale)
-        self.majorant = float(grid.density_scale * grid.max_density)
+        self.bricks = bricks
         self.lights = Lights3(lights)
         self.albedo, self.g = float(albedo), float(g)
         self.max_scatter = int(max_scatter)
@@ -249,7 +300,7 @@ class WavefrontStep:
         """One tracking step for every slot: its shadow ray if one is pending, else its free flight. Slots
         whose free flight meets a real collision are left waiting (``FF = 2``, ``o`` = the vertex) for
         :meth:`scatter`."""
-        lights, m = self.lights, self.majorant
+        lights = self.lights
         row = F.unbind(0)
         o, d, t, tmax = row[0:3], row[3:6], row[_T], row[_TMAX]
         beta, pdf, L = row[8:11], row[_PDF], row[12:15]
@@ -260,30 +311,38 @@ class WavefrontStep:
         u0, u1 = uniforms(I[_KEY], cnt, 2)
         zero = torch.zeros_like(t)
 
+        # One step against the majorant m of the ray's current brick: a tentative collision inside the brick
+        # (hit), or a move to the brick's exit (memoryless restart there), or the end of the ray (passed).
         run_ff = ff & ~sh
         dr = _pick(sh, wi, d)
         tr = torch.where(sh, ts, t)
         te = torch.where(sh, tse, tmax)
-        tc = tr - torch.log1p(-u0) / m if m > 0 else torch.full_like(tr, math.inf)
-        passed = tc >= te
-        tx = torch.where(passed, tr, tc)
+        m, t_brick = self.bricks.segment(o, dr, tr, sh)
+        seg_end = torch.minimum(t_brick, te)
+        tc = torch.where(m > 0, tr - torch.log1p(-u0) / m.clamp(min=1e-30), torch.full_like(tr, math.inf))
+        hit = tc < seg_end
+        passed = ~hit & (seg_end >= te)
+        tx = torch.where(hit, tc, seg_end)
         x = (o[0] + tx * dr[0], o[1] + tx * dr[1], o[2] + tx * dr[2])
-        sigma = self.sigma_t(x)
-        nul = (1.0 - sigma / m).clamp(min=0.0) if m > 0 else torch.ones_like(sigma)
+        # Only tentative collisions of running rays need the density; the others look up the box corner,
+        # whose voxels stay in cache (a brick crossing or an idle slot costs no memory traffic).
+        need = hit & (run_ff | sh)
+        sigma = self.sigma_t(_pick(need, x, self.lo))
+        nul = (1.0 - sigma / m.clamp(min=1e-30)).clamp(min=0.0)
 
         # Shadow rays: ratio tracking with roulette; the contribution lands when the ray ends.
-        Tn = torch.where(passed, Tr, Tr * nul)
+        Tn = torch.where(hit, Tr * nul, Tr)
         if self.thr > 0:
-            Tn = torch.where(~passed & (Tn < self.thr), (u1 < Tn).to(Tn.dtype), Tn)
+            Tn = torch.where(hit & (Tn < self.thr), (u1 < Tn).to(Tn.dtype), Tn)
         sh_end = sh & (passed | (Tn == 0))
         L = tuple(Lc + torch.where(sh_end, c * Tn, zero) for Lc, c in zip(L, csh))
-        ts = torch.where(sh, tc, ts)
+        ts = torch.where(sh, tx, ts)
         Tr = torch.where(sh, Tn, Tr)
 
         # Free flights: escape (environment, MIS unless a camera ray), null or real collision.
         esc = run_ff & passed
-        real = run_ff & ~passed & (u1 * m < sigma)
-        t = torch.where(run_ff & ~passed & ~real, tc, t)
+        real = run_ff & hit & (u1 * m < sigma)
+        t = torch.where(run_ff & ~passed & ~real, tx, t)
         if lights.env is not None:
             w = torch.where(pdf > 0, _power(pdf, lights.env_pdf), torch.ones_like(pdf))
             L = tuple(Lc + torch.where(esc, b * (e * w), zero) for Lc, b, e in zip(L, beta, lights.env))
@@ -405,7 +464,9 @@ def render_loop(
                 k = min(len(idx), total - next_id)
                 if k:
                     slots = idx[:k]
-                    F[:, slots], I[:, slots] = camera_state(pt, torch.arange(next_id, next_id + k, device=dev))
+                    Fn, In = camera_state(pt, torch.arange(next_id, next_id + k, device=dev))
+                    F.index_copy_(1, slots, Fn)
+                    I.index_copy_(1, slots, In)
                     next_id += k
             S = I.shape[1]
             live = S - len(idx) + k
@@ -428,7 +489,9 @@ def render_loop(
         sc = (I[_FF] == 2).nonzero().squeeze(1)
         if len(sc):
             counts["scatter_events"] += len(sc)
-            F[:, sc], I[:, sc] = machine.scatter(F[:, sc], I[:, sc])
+            Fs, Is = machine.scatter(F.index_select(1, sc), I.index_select(1, sc))
+            F.index_copy_(1, sc, Fs)
+            I.index_copy_(1, sc, Is)
         timers["scatter"] += time.perf_counter() - t_sc
 
 
@@ -438,11 +501,6 @@ def unsupported_reason(pt: PathTracer) -> str | None:
         return f"transmittance {pt.transmittance.name!r} has no compiled kernel (only 'ratio')"
     if pt.lights.env_maps:
         return "lat-long environment maps have no compiled light sampler (directional, point, uniform sky only)"
-    grid = pt.scene.grid
-    crossing = grid.density_scale * grid.max_density * float(grid.box.extent.norm())
-    if crossing > MAX_CROSSING_STEPS:
-        return (f"global majorant x box diagonal = {crossing:.3g} expected steps per crossing > {MAX_CROSSING_STEPS} "
-                "(the compiled backend has no brick majorants: dense media need the eager brick DDA)")
     return None
 
 
@@ -458,7 +516,8 @@ class StateMachine:
 
     def __init__(self, pt: PathTracer, compile: bool) -> None:
         thr = float(pt.transmittance.params.get("roulette_threshold", 0.1))
-        step = WavefrontStep(pt.scene.grid, pt.lights, pt.scene.albedo, pt.scene.g, pt.max_scatter, thr,
+        bricks = BrickTables(pt.tracking_majorants, pt.majorants)
+        step = WavefrontStep(pt.scene.grid, bricks, pt.lights, pt.scene.albedo, pt.scene.g, pt.max_scatter, thr,
                              pt.rr_start if pt.rr_enabled else None)
         track = multi_step(step, pt.steps_per_call)
         self._scatter_eager = step.scatter
@@ -528,7 +587,8 @@ def render_state_machine(pt: PathTracer, machine: StateMachine, progress: bool =
     metrics: dict[str, Any] = {
         "renderer": pt.name,
         "backend": "compiled" if machine.compiled else "state_machine_eager",
-        "free_flight": "global",
+        "free_flight": pt.free_flight,
+        "brick": pt.majorants.brick,
         "transmittance": pt.transmittance.name,
         "spp": pt.spp,
         "samples": total,
