@@ -50,6 +50,9 @@ from nrc.io import read_exr  # noqa: E402
 from nrc.metrics import error_report, medium_mask  # noqa: E402
 from nrc.render.reference import read_reference, scene_hash  # noqa: E402
 
+sys.path.insert(0, str(REPO / "scripts"))
+from speed_vs_error import fmt  # noqa: E402  (one number format for every generated table)
+
 REF_DIR = REPO / "data" / "references"
 REPORTS: dict[str, list[str]] = {
     "encodings": ["encodings"],
@@ -117,14 +120,6 @@ def mean_after_first(xs: list[float]) -> float | None:
     if not xs:
         return None
     return float(np.mean(xs[1:] if len(xs) > 1 else xs))
-
-
-def fmt(v: Any, digits: int = 3) -> str:
-    if v is None:
-        return "–"
-    if isinstance(v, float):
-        return f"{v:.{digits}g}"
-    return str(v)
 
 
 def header(title: str, experiments: list[str], root: Path, what: str) -> list[str]:
