@@ -110,6 +110,7 @@ def test_ema_weights_serve_queries_and_raw_weights_train():
     q = cache.query(x, d)
     torch.testing.assert_close(q, ema_pred)
     assert not torch.allclose(q, raw_pred)
+    torch.testing.assert_close(cache.query_raw(x, d), raw_pred)  # the self-training queries' option
 
 
 # ---------------------------------------------------------------- optimiser

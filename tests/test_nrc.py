@@ -164,6 +164,46 @@ def test_training_targets_match_a_hand_computed_path(tmp_path):
     assert stats["train_records_valid"] == 2 and stats["cache_queries"] == 2
 
 
+class TwoWeightCache(StubCache):
+    """Answers EMA queries with ``c_ema`` and raw-weight queries with ``c_raw``."""
+
+    def __init__(self, c_ema, c_raw):
+        super().__init__(lambda x, d: c_ema.expand_as(x).clone())
+        self.c_raw = c_raw
+
+    def query_raw(self, x, d):
+        return self.c_raw.expand_as(x).clone()
+
+
+@pytest.mark.parametrize("weights", ["ema", "raw"])
+def test_training_queries_use_the_configured_weights(tmp_path, weights):
+    """Render paths always read the EMA weights; the training path's terminal query reads the raw weights
+    with ``training.query_weights=raw`` (the EMA of the weights lags and, in a thick cloud, predicts
+    darker than the raw weights: fed back through self-training it held the image at ~0.7 of the
+    reference). Deterministic path as in the hand-computed test: records carry ``a^2 C`` and ``a C``."""
+    np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
+    albedo, c_ema, c_raw = 0.8, torch.tensor([0.2, 0.3, 0.4]), torch.tensor([1.0, 2.0, 3.0])
+    base = ["renderer=nrc", "scene=sun", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
+            "scene.volume.density_scale=0.08", f"scene.volume.albedo={albedo}", "scene.camera.width=1",
+            "scene.camera.height=1", "scene.camera.position=[0,0,150]", "scene.camera.look_at=[0,0,0]",
+            "scene.integrator.spp=1", "renderer.free_flight=global", "renderer.training.width=1",
+            "renderer.training.height=1", "renderer.training.records_per_path=3",
+            "renderer.training.extra_vertices=2", "transmittance=biased_raymarch", "batch_filter.n_batches=1",
+            "renderer.log.tensorboard=false"]
+    targets = {}
+    for mode in ("ema", weights):
+        cfg = compose([*base, f"renderer.training.query_weights={mode}"])
+        cache = TwoWeightCache(c_ema, c_raw)
+        r = NRCRenderer(load_scene(cfg.scene), cfg, cache=cache)
+        r.frame_rng = lambda frame: ConstantRandom(0.3)
+        image, _, _ = r.render_frame(0)
+        torch.testing.assert_close(image.reshape(3), c_ema)
+        targets[mode] = cache.batches[0][2]
+    used = c_raw if weights == "raw" else c_ema
+    torch.testing.assert_close(targets[weights] - targets["ema"],
+                               torch.stack([albedo**2 * (used - c_ema), albedo * (used - c_ema)]), rtol=1e-4, atol=1e-6)
+
+
 def test_training_positions_tile_the_image_on_both_axes():
     """One training path per tile, x spacing from the width and y spacing from the height (all inside)."""
     tw, th, w, h = 8, 4, 160, 90

@@ -81,12 +81,20 @@ class RadianceCache:
         Uses the EMA weights, no autograd, in chunks of ``settings.query_chunk`` points. Predictions
         are not clamped (a linear output can be slightly negative).
         """
+        return self._query(self.ema.shadow, positions, directions)
+
+    @torch.no_grad()
+    def query_raw(self, positions: Tensor, directions: Tensor) -> Tensor:
+        """Like :meth:`query` but with the raw (trained) weights instead of their EMA."""
+        return self._query(self.network, positions, directions)
+
+    def _query(self, net: torch.nn.Module, positions: Tensor, directions: Tensor) -> Tensor:
         n = positions.shape[0]
         out = torch.empty(n, 3, dtype=torch.float32, device=self.device)
         chunk = self.settings.query_chunk
         for start in range(0, n, chunk):
             stop = min(start + chunk, n)
-            out[start:stop] = self.ema.shadow(self._raw(positions[start:stop], directions[start:stop]))
+            out[start:stop] = net(self._raw(positions[start:stop], directions[start:stop]))
         return out
 
     def train_step(self, positions: Tensor, directions: Tensor, targets: Tensor) -> float:

@@ -158,8 +158,11 @@ class NRCRenderer:
         trace = self.tracer.trace(ps, self.frame_lights(frame), rng)
         t1 = time.perf_counter()
 
+        # Training paths' terminal queries read the raw weights (training.query_weights=raw; a cache without
+        # separate raw weights, such as a test stub, answers them with query).
+        query_from = getattr(self.cache, "query_raw", None) if tr.query_weights == "raw" else None
         values, infer_counts = filtered_query(self.cache.query, trace.query_x, trace.query_d, trace.query_pid,
-                                              ps.n_render + ps.n_train, st.inference_batch)
+                                              ps.n_render + ps.n_train, st.inference_batch, query_from, ps.n_render)
         # Radiance is never negative: a linear output that dips below 0 (early frames) would otherwise
         # darken the image and, through self-training, feed negative targets back into the cache.
         values = torch.nan_to_num(values, nan=0.0, posinf=0.0).clamp(min=0.0)

@@ -23,6 +23,7 @@ class TrainingSettings:
     extra_vertices: int  # vertices a training path goes past the render path's stop
     unbiased_fraction: float  # probability that a training path never terminates into the cache
     ring_buffer: int  # records kept from earlier frames
+    query_weights: str = "raw"  # cache weights of the training paths' terminal queries: ema | raw
 
     @property
     def n_paths(self) -> int:
@@ -67,6 +68,7 @@ class NRCSettings:
                 extra_vertices=tr.get_int("extra_vertices", 3, lo=0),
                 unbiased_fraction=tr.get_float("unbiased_fraction", 0.25, lo=0.0, hi=1.0),
                 ring_buffer=tr.get_int("ring_buffer", 1 << 18, lo=1),
+                query_weights=tr.get_choice("query_weights", ["raw", "ema"], "raw"),
             ),
             inference_batch=inf.get_int("batch_size", 1 << 14, lo=1),
             accumulate=cfg.get_bool("accumulate", False),
