@@ -14,8 +14,9 @@ execution only:
   samples the continuation, which resumes once the shadow ray is done.
 * **Brick majorants without traversal state** (:class:`BrickTables`): each step looks up the brick its ray is
   in from the current point and either samples a tentative collision against that brick's majorant or moves
-  the ray to the brick's exit (empty bricks cost one step each, never a density lookup that matters), so a
-  step is the same branch-free arithmetic for every slot. The grids are the eager tracer's
+  the ray to the brick's exit (an empty brick costs one step), so a step is the same branch-free arithmetic
+  for every slot. Steps that need no density (brick crossings, idle slots) look it up at the box corner,
+  whose voxels stay in cache: only tentative collisions pay the grid's memory traffic. The grids are the eager tracer's
   (``renderer.brick``, ``renderer.free_flight``); shadow rays always use the bricks.
 * **Counter-based RNG** (:mod:`nrc.transport.rng`): the numbers of a path depend on ``(seed, sample id, step
   counter)`` only, so the image does not depend on the number of slots or on the refill cadence.
@@ -158,7 +159,8 @@ class BrickTables:
         for a in range(3):
             org = per_slot([v[a] for v in self.origin])
             c = ((o[a] + tn * d[a] - org) / size).floor().nan_to_num(0.0, 0.0, 0.0).clamp(min=0.0)
-            c = torch.minimum(c, torch.full_like(c, self.last[0][a]) if not two else per_slot([v[a] for v in self.last]))
+            last = per_slot([v[a] for v in self.last])
+            c = torch.minimum(c, last) if two else c.clamp(max=last)
             bound = org + (c + (d[a] > 0).to(c.dtype)) * size
             tb = torch.where(d[a] != 0, (bound - o[a]) / d[a], torch.full_like(t, math.inf))
             t_exit = tb if t_exit is None else torch.minimum(t_exit, tb)
