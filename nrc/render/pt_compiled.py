@@ -20,10 +20,11 @@ execution only:
   (``renderer.brick``, ``renderer.free_flight``); shadow rays always use the bricks.
 * **Counter-based RNG** (:mod:`nrc.transport.rng`): the numbers of a path depend on ``(seed, sample id, step
   counter)`` only, so the image does not depend on the number of slots or on the refill cadence.
-* **Scattering** is a second compiled function run after each tracking call on the slots that met a real
-  collision (a few percent of them): the tracking step itself only looks up the density and updates weights.
+* **Scattering** is a second compiled function run after every ``SCATTER_EVERY``-th tracking call on the
+  slots waiting at a real collision (a few percent of them): the tracking step itself only looks up the
+  density and updates weights.
 * **Refill** happens outside the compiled functions, every ``REFILL_EVERY``-th call of ``steps_per_call``
-  steps (every call once the camera queue is empty): finished paths add their radiance to their pixel and
+  steps: finished paths add their radiance to their pixel and
   their slots take new camera samples. Once the camera queue is
   empty the state is compacted whenever fewer than half the slots are live (dynamic shapes: no recompile).
 
@@ -65,6 +66,9 @@ NF = 24
 _PIX, _KEY, _CNT, _N, _FF, _SH, _OCC, _NSH = range(8)
 NI = 8
 REFILL_EVERY = 4  # calls between refills while the camera queue lasts (finished slots idle ~1.5 steps)
+# calls between scattering passes: slots at a vertex wait ~0.5 step longer (+3.6 % slot-steps) for half the
+# passes' fixed cost (nonzero, gathers; eager and single-threaded): ~+15 % samples/s at 2 threads (benchmarks.md)
+SCATTER_EVERY = 2
 MIN_SLOTS = 64  # compaction never goes below this (dynamic-shape kernels specialise sizes 0 and 1)
 
 
@@ -449,7 +453,7 @@ def render_loop(
     I = torch.zeros(NI, S, dtype=torch.long, device=dev)
     next_id, calls = 0, 0
     while True:
-        if calls % REFILL_EVERY == 0 or next_id >= total:
+        if calls % REFILL_EVERY == 0:
             t_rf = time.perf_counter()
             free = (I[_FF] == 0) & (I[_SH] == 0)
             idx = free.nonzero().squeeze(1)
@@ -488,6 +492,8 @@ def render_loop(
         counts["slot_steps"] += I.shape[1] * pt.steps_per_call
         t_sc = time.perf_counter()
         timers["step"] += t_sc - t_st
+        if calls % SCATTER_EVERY:
+            continue
         sc = (I[_FF] == 2).nonzero().squeeze(1)
         if len(sc):
             counts["scatter_events"] += len(sc)
