@@ -222,3 +222,23 @@ def test_state_machine_matches_mitsuba(preset, single_thread):
     from test_pt_vs_mitsuba import compare_with_mitsuba
 
     compare_with_mitsuba(CASES[preset], preset, render=render_sm, seeds=8)  # fast: more seeds, steadier SEs
+
+
+
+def test_compiled_machines_are_shared_by_tracers_of_the_same_scene_and_settings():
+    """A new tracer for another spp count or seed reuses the compiled functions (no re-trace); another grid or
+    any setting the compiled code depends on gets its own. (torch.compile is lazy: nothing compiles here.)"""
+    import dataclasses
+
+    from conftest import compose
+    from nrc.render.pt import PathTracer
+    from nrc.scene import load_scene
+
+    cfg = compose(["renderer=pt", "scene.volume.procedural.resolution=16", "renderer.backend=compiled"])
+    scene = load_scene(cfg.scene)
+    machine = pc.compiled_machine(PathTracer(scene, cfg))
+    other_samples = dataclasses.replace(scene, integrator=dataclasses.replace(scene.integrator, spp=8, seed=3))
+    assert pc.compiled_machine(PathTracer(other_samples, cfg)) is machine
+    assert pc.compiled_machine(PathTracer(dataclasses.replace(scene, g=0.3), cfg)) is not machine
+    assert pc.compiled_machine(PathTracer(load_scene(cfg.scene), cfg)) is not machine  # another grid object
+    assert pc.compiled_machine(PathTracer(scene, cfg)) is machine

@@ -115,7 +115,7 @@ class PathTracer:
         if reason is None:
             try:
                 if self._machine is None:
-                    self._machine = pt_compiled.StateMachine(self, compile=True)
+                    self._machine = pt_compiled.compiled_machine(self)
                 self._machine.warm_up()
             except Exception as exc:  # no C++ compiler, unsupported op, ...: the eager tracer still works
                 self._machine = None

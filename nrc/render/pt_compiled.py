@@ -559,6 +559,30 @@ class StateMachine:
         return self.startup_s
 
 
+MACHINE_CACHE = 4  # compiled state machines kept per process (one per scene and settings)
+_machines: list[tuple[DensityGrid, tuple[Any, ...], StateMachine]] = []
+
+
+def compiled_machine(pt: PathTracer) -> StateMachine:
+    """The compiled state machine of ``pt``'s configuration, shared by every tracer of the same scene grid and
+    settings in this process: a new :class:`~nrc.render.pt.PathTracer` for another spp count or seed (a
+    reference chunk, a benchmark repeat) reuses it instead of re-tracing (seconds each). The grid is matched
+    by identity, everything else the compiled code depends on by value."""
+    lights = Lights3(pt.lights)
+    key = (str(pt.device), pt.scene.grid.density_scale, pt.majorants.brick, pt.free_flight, lights.directional,
+           lights.points, lights.env, pt.scene.albedo, pt.scene.g, pt.max_scatter,
+           float(pt.transmittance.params.get("roulette_threshold", 0.1)), pt.rr_start if pt.rr_enabled else None,
+           pt.steps_per_call, max(pt.slots, MIN_SLOTS))
+    for i, (grid, k, machine) in enumerate(_machines):
+        if grid is pt.scene.grid and k == key:
+            _machines.append(_machines.pop(i))
+            return machine
+    machine = StateMachine(pt, compile=True)
+    _machines.append((pt.scene.grid, key, machine))
+    del _machines[:-MACHINE_CACHE]
+    return machine
+
+
 StateFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]  # (F, I) -> (F, I)
 
 
