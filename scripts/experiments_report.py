@@ -25,8 +25,8 @@ Usage::
     python scripts/experiments_report.py [encodings extra_inputs batch_filters transmittance nrc_vs_pt] [--results]
 
 ``--results`` then assembles ``docs/results.md`` from ``docs/results_intro.md`` (hand-written), the
-``scripts/speed_vs_error.py`` outputs in ``docs/results/speed_160x90`` and ``docs/results/speed_480x270_b``,
-and the report fragments.
+``scripts/speed_vs_error.py`` outputs listed in :data:`SPEED_RUNS` (``docs/results/speed_*``), and the report
+fragments.
 """
 
 from __future__ import annotations
@@ -110,8 +110,11 @@ def find_reference(cfg) -> Path | None:
     return found[-1] if found else None
 
 
+CONDITIONS = {"text": "run conditions not recorded"}  # --conditions: how the multiruns were run
+
+
 def machine() -> str:
-    return f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, shared with other jobs"
+    return f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}; {CONDITIONS['text']}"
 
 
 def mean_after_first(xs: list[float]) -> float | None:
@@ -334,9 +337,11 @@ BUILDERS = {
 }
 
 
-SPEED_RUNS = [("160 x 90", "speed_160x90"), ("160 x 90, quiet machine, 30 warm-up frames", "speed_160x90_quiet"),
-              ("480 x 270, quiet machine, 30 warm-up frames, 128-spp reference", "speed_480x270_quiet"),
-              ("480 x 270", "speed_480x270_b"), ("80 x 45, accumulated frames", "speed_80x45_accumulate_long")]
+SPEED_RUNS = [("480 x 270, single frames", "speed_480x270_v2"),
+              ("160 x 90, single frames", "speed_160x90_v2"),
+              ("160 x 90, single frames: the default sweep (encodings, extra inputs, transmittance estimators)",
+               "speed_160x90_sweep_v2"),
+              ("80 x 45, accumulated frames with a static camera", "speed_80x45_accumulate_crossover")]
 HEADLINE = "nrc_hashgrid"  # the NRC configuration of the headline ratio
 
 
@@ -380,7 +385,7 @@ def assemble_results(docs: Path, intro: Path | None) -> Path:
             f"(whole image {q.get('ratio_rel_mse', float('nan')):.2g}; after subtracting the reference's noise "
             f"floor: {fmt(q.get('ratio_rel_mse_medium_corr'), 2)}). Per resolution: "
             + ", ".join(f"{lab}: {h['ratio_rel_mse_medium']:.2g}" for lab, h, _ in headline)
-            + ". Read the caveats above: PT's 1-spp frames are firefly-dominated and NRC's frames are biased dark.", ""]
+            + ". Read the caveats above: PT's 1-spp frames are firefly-dominated, and NRC's error is mostly bias.", ""]
     lines += ["## Thesis experiments at CPU scale", ""]
     for name in REPORTS:
         f = docs / "results" / f"{name}.md"
@@ -399,7 +404,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--results", action="store_true", help="also assemble docs/results.md")
     p.add_argument("--intro", type=Path, default=REPO / "docs" / "results_intro.md",
                    help="hand-written Markdown placed at the top of results.md (if it exists)")
+    p.add_argument("--conditions", default=CONDITIONS["text"],
+                   help="how the multiruns were run (threads, other jobs), stated with each report")
     args = p.parse_args(argv)
+    CONDITIONS["text"] = args.conditions
     out_md, out_img = args.docs / "results", args.docs / "images" / "results"
     out_md.mkdir(parents=True, exist_ok=True)
     out_img.mkdir(parents=True, exist_ok=True)

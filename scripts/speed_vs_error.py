@@ -14,8 +14,8 @@ Two modes (``--mode single|accumulate|both``):
   frame). Time = mean wall time of one frame (after an untimed warm-up render for ``pt``); relMSE = mean
   over the frames; bias = mean relative bias of the per-pixel mean over the frames; variance = relative
   variance across the frames (see ``nrc.metrics``). The equal-time ratio of an NRC configuration is its
-  relMSE over the relMSE of the baseline ``pt`` curve (its Pareto front: the best relMSE reachable
-  within a time) interpolated (log-log) at the same time per frame (extrapolated with slope -1,
+  relMSE over the relMSE of the path tracer (the Pareto front of every ``pt`` configuration run, e.g. the
+  eager and compiled backends: the best relMSE reachable within a time) interpolated (log-log) at the same time per frame (extrapolated with slope -1,
   relMSE ~ 1/spp, beyond the slowest point; flat, the fastest frame's error, before the fastest point).
 * **accumulate** (static camera; the ``--acc-configs``). ``pt`` accumulates ``--acc-pt-spp``-spp frames,
   NRC accumulates its 1-spp frames (``renderer.accumulate=true``, training continues, counted from a
@@ -69,7 +69,7 @@ PRESETS: dict[str, list[str]] = {
     ],
     "none": [],
 }
-# name -> Hydra overrides. The first pt configuration is the baseline of the equal-time ratios.
+# name -> Hydra overrides. The pt configurations together (their Pareto front) are the baseline of the ratios.
 CONFIGS: dict[str, list[str]] = {
     "pt": ["renderer=pt", "transmittance=ratio"],
     "pt_unbiased_raymarch": ["renderer=pt", "transmittance=unbiased_raymarch"],
@@ -305,21 +305,40 @@ def add_corrected(rows: list[dict[str, Any]], floor: float | None, floor_medium:
 
 
 def pareto(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    """The ``(time, error)`` points no faster point beats: the best error reachable within each time.
+    """The best error reachable within each time: the ``(time, error)`` points no faster point beats, then
+    their lower convex hull in log-log coordinates.
 
     A wavefront path tracer's time per frame is nearly flat in spp at low spp (the longest paths set
     it), so more spp can take no longer, or even less time on a noisy machine; the front keeps the curve
-    monotone.
+    monotone. The hull drops points above the straight log-log line between their neighbours: a frame
+    with an spp count between two measured ones reaches that line (error ~ 1/spp, time ~ spp), so such a
+    point is not the best the path tracer can do at its time (e.g. a slow eager 1-spp frame between the
+    compiled backend's 1- and 4-spp frames).
     """
     front: list[tuple[float, float]] = []
     for t, e in sorted(points):
         if not front or e < front[-1][1]:
             front.append((t, e))
-    return front
+    hull: list[tuple[float, float]] = []
+    for p in front:
+        while len(hull) >= 2:
+            (ax, ay), (bx, by) = ((math.log(q[0]), math.log(q[1])) for q in hull[-2:])
+            cx, cy = math.log(p[0]), math.log(p[1])
+            if (bx - ax) * (cy - ay) - (by - ay) * (cx - ax) > 0:  # b below the line a-c: keep it
+                break
+            hull.pop()
+        hull.append(p)
+    return hull
 
 
-def equal_time_ratios(rows: list[dict[str, Any]], baseline: str, clock: str = "time_s") -> list[dict[str, Any]]:
-    """NRC single-frame points against the baseline ``pt`` curve (its Pareto front) at the same time per frame.
+def baseline_names(baseline: str | list[str] | None) -> list[str]:
+    """The path-tracer configurations of a baseline (one name in summaries written before it was a list)."""
+    return [] if baseline is None else [baseline] if isinstance(baseline, str) else list(baseline)
+
+
+def equal_time_ratios(rows: list[dict[str, Any]], baseline: str | list[str], clock: str = "time_s") -> list[dict[str, Any]]:
+    """NRC single-frame points against the baseline path tracers at the same time per frame: the Pareto front of
+    all their points (the best path-tracer error measured at that time, whichever configuration reached it).
 
     ``clock``: ``time_s`` (wall time) or ``cpu_s`` (process CPU time, all threads: less sensitive to other
     jobs on a shared machine).
@@ -327,7 +346,8 @@ def equal_time_ratios(rows: list[dict[str, Any]], baseline: str, clock: str = "t
     if clock != "time_s":
         sel = [r for r in rows if r.get(clock) is not None]
         return equal_time_ratios([{**r, "time_s": r[clock]} for r in sel], baseline) if sel else []
-    base = [r for r in rows if r["mode"] == "single" and r["config"] == baseline]
+    names = baseline_names(baseline)
+    base = [r for r in rows if r["mode"] == "single" and r["config"] in names]
     out = []
     if len(base) == 0:
         return out
@@ -347,10 +367,12 @@ def equal_time_ratios(rows: list[dict[str, Any]], baseline: str, clock: str = "t
     return out
 
 
-def crossovers(rows: list[dict[str, Any]], baseline: str) -> list[dict[str, Any]]:
-    """For each NRC accumulate curve: the first measured time after which the baseline pt is more accurate."""
+def crossovers(rows: list[dict[str, Any]], baseline: str | list[str]) -> list[dict[str, Any]]:
+    """For each NRC accumulate curve: the first measured time after which the baseline path tracers (their
+    Pareto front) are more accurate."""
     key = "rel_mse_medium" if any(r.get("rel_mse_medium") is not None for r in rows) else "rel_mse"
-    base = [r for r in rows if r["mode"] == "accumulate" and r["config"] == baseline]
+    names = baseline_names(baseline)
+    base = [r for r in rows if r["mode"] == "accumulate" and r["config"] in names]
     out = []
     if not base:
         return out
@@ -439,8 +461,9 @@ def markdown(rows, ratios, cross, meta) -> str:
                          f"{fmt(r.get('variance_medium'))} | {r['renders']} |")
         lines.append("")
     if ratios:
-        lines += [f"**Equal time per frame**: NRC relMSE over the `{meta['baseline']}` relMSE interpolated (log-log) "
-                  "at the NRC time per frame (beyond PT's slowest point extrapolated with relMSE ~ 1/time; below its fastest "
+        pts = ", ".join(f"`{n}`" for n in baseline_names(meta["baseline"]))
+        lines += [f"**Equal time per frame**: NRC relMSE over the path tracer's relMSE (the Pareto front of {pts}) "
+                  "interpolated (log-log) at the NRC time per frame (beyond PT's slowest point extrapolated with relMSE ~ 1/time; below its fastest "
                   "frame, PT's fastest frame's error: a frame cannot take less than PT's smallest spp).", "",
                   "The corrected ratio subtracts the reference's noise floor from both relMSEs first.", "",
                   "| config | spp/frame | time/frame (s) | NRC relMSE medium | PT relMSE medium at equal time | "
@@ -586,7 +609,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def finish() -> tuple[dict, list, list]:
         """Ratios, crossovers and outputs from the rows so far (written after every configuration)."""
-        baseline = next((n for n, o in configs.items() if _renderer_of(o) == "pt" and n not in skipped), None)
+        baseline = [n for n, o in configs.items() if _renderer_of(o) == "pt" and n not in skipped] or None
         ratios = equal_time_ratios(rows, baseline) if baseline else []
         cross = crossovers(rows, baseline) if baseline else []
         meta = {
@@ -618,7 +641,7 @@ def main(argv: list[str] | None = None) -> int:
             rows += run_accumulate(name, cfg, scene, scorer, args, log)
         finish()
     meta, ratios, cross = finish()
-    baseline = meta["baseline"]
+    baseline = "+".join(baseline_names(meta["baseline"]))
     for q in ratios:
         log(f"equal-time relMSE ratio {q['config']}/{baseline} (spp {q['spp']}): "
             f"medium {fmt(q.get('ratio_rel_mse_medium'), 2)}, all {fmt(q.get('ratio_rel_mse'), 2)}")
@@ -635,7 +658,8 @@ def replot(out: Path) -> int:
     meta.setdefault("nrc_overrides", [])
     meta.setdefault("git", "unknown")
     add_corrected(rows, meta["rel_mse_floor"], meta["rel_mse_floor_medium"])
-    baseline = meta["baseline"]
+    # every pt configuration of the run is part of the baseline (older summaries named only the first)
+    baseline = meta["baseline"] = list(dict.fromkeys(r["config"] for r in rows if r["renderer"] == "pt")) or None
     write_outputs(out, rows, equal_time_ratios(rows, baseline), crossovers(rows, baseline), meta)
     print(f"rewrote {out}")
     return 0

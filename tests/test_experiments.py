@@ -127,5 +127,5 @@ def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
     assert report.main(["nrc_vs_pt", "--root", str(root), "--docs", str(tmp_path / "docs"), "--results",
                         "--intro", str(tmp_path / "intro.md")]) == 0
     results = (tmp_path / "docs" / "results.md").read_text()
-    assert "Hand-written intro." in results and "docs/results/speed_480x270_b/summary.json` is missing" in results
+    assert "Hand-written intro." in results and "docs/results/speed_480x270_v2/summary.json` is missing" in results
     assert "NRC vs PT at 1 spp" in results and "equal-time relMSE ratio" not in results
