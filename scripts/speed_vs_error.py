@@ -381,19 +381,22 @@ def crossovers(rows: list[dict[str, Any]], baseline: str | list[str]) -> list[di
     for name in dict.fromkeys(r["config"] for r in rows if r["mode"] == "accumulate" and r["renderer"] != "pt"):
         curve = sorted((r for r in rows if r["mode"] == "accumulate" and r["config"] == name),
                        key=lambda r: r["time_s"])
+        # Compared only where pt has a measurement (from its first frame on): before that it has no image.
+        comparable = [r for r in curve if r["time_s"] >= bt[0]]
         # pt interpolated on the NRC times: a crossover is a sign change of log(pt/nrc)
-        diff = [math.log(loglog_interp(r["time_s"], bt, be) / r[key]) for r in curve]
-        t_cross = None
-        for i in range(len(curve)):
+        diff = [math.log(loglog_interp(r["time_s"], bt, be) / r[key]) for r in comparable]
+        t_cross, before_first = None, False
+        for i in range(len(comparable)):
             if diff[i] < 0 and all(d < 0 for d in diff[i:]):
-                if i == 0:
-                    t_cross = curve[0]["time_s"]
+                if i == 0:  # pt is already ahead at its first frame: the crossover is no later than that
+                    t_cross, before_first = bt[0], True
                 else:  # linear in log time between the last NRC-better and first pt-better points
                     a, b = diff[i - 1], diff[i]
-                    la, lb = math.log(curve[i - 1]["time_s"]), math.log(curve[i]["time_s"])
+                    la, lb = math.log(comparable[i - 1]["time_s"]), math.log(comparable[i]["time_s"])
                     t_cross = math.exp(la + (lb - la) * a / (a - b))
                 break
         out.append({"config": name, "metric": key, "crossover_time_s": t_cross,
+                    "crossover_at_or_before": before_first, "pt_first_time_s": bt[0],
                     "max_time_s": curve[-1]["time_s"] if curve else None,
                     "pt_better_at_end": bool(diff and diff[-1] < 0)})
     return out
@@ -488,10 +491,12 @@ def markdown(rows, ratios, cross, meta) -> str:
         lines.append("")
     if cross:
         lines += ["**Crossover (accumulated, static camera)**: the time after which the unbiased PT's running mean "
-                  f"has the lower {cross[0]['metric']}.", "",
+                  f"has the lower {cross[0]['metric']} (compared from PT's first frame on; \"<=\": PT is already "
+                  "ahead with its first frame).", "",
                   "| config | crossover (s) | measured up to (s) |", "|---|---:|---:|"]
         for c in cross:
-            t = fmt(c["crossover_time_s"]) if c["crossover_time_s"] is not None else "none within the budget"
+            t = "none within the budget" if c["crossover_time_s"] is None else \
+                ("<= " if c.get("crossover_at_or_before") else "") + fmt(c["crossover_time_s"])
             lines.append(f"| {c['config']} | {t} | {fmt(c['max_time_s'])} |")
         lines.append("")
     return "\n".join(lines)

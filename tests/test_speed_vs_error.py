@@ -59,7 +59,12 @@ def test_equal_time_ratio_and_crossover(sve):
     assert not q["extrapolated"]
     (c,) = sve.crossovers(pt + nrc, "pt")
     assert c["metric"] == "rel_mse_medium" and c["pt_better_at_end"]
-    assert 4.0 < c["crossover_time_s"] < 8.0
+    assert 4.0 < c["crossover_time_s"] < 8.0 and not c["crossover_at_or_before"]
+    # pt's first frame comes after NRC's first and already beats NRC at that time: "at or before" it, never
+    # earlier (no pt image exists before its first frame)
+    late_pt = [{**r, "time_s": r["time_s"] + 2.0, "rel_mse_medium": 0.01} for r in pt if r["mode"] == "accumulate"]
+    (c,) = sve.crossovers(late_pt + nrc, "pt")
+    assert c["crossover_time_s"] == 3.0 and c["crossover_at_or_before"]
 
 
 def test_smoke_two_configs_both_modes(sve, tmp_path):
