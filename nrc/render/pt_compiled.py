@@ -512,6 +512,11 @@ def unsupported_reason(pt: PathTracer) -> str | None:
     return None
 
 
+def roulette_threshold(pt: PathTracer) -> float:
+    """The ratio-tracking roulette threshold of ``pt``'s transmittance estimator (0 = off)."""
+    return float(pt.transmittance.params.get("roulette_threshold", 0.1))
+
+
 class StateMachine:
     """The functions of ``pt``'s state machine, compiled or run eagerly: ``track`` (``pt.steps_per_call``
     tracking steps of every slot) and ``scatter`` (the slots waiting at a scattering vertex).
@@ -523,10 +528,9 @@ class StateMachine:
     """
 
     def __init__(self, pt: PathTracer, compile: bool) -> None:
-        thr = float(pt.transmittance.params.get("roulette_threshold", 0.1))
         bricks = BrickTables(pt.tracking_majorants, pt.majorants)
-        step = WavefrontStep(pt.scene.grid, bricks, pt.lights, pt.scene.albedo, pt.scene.g, pt.max_scatter, thr,
-                             pt.rr_start if pt.rr_enabled else None)
+        step = WavefrontStep(pt.scene.grid, bricks, pt.lights, pt.scene.albedo, pt.scene.g, pt.max_scatter,
+                             roulette_threshold(pt), pt.rr_start if pt.rr_enabled else None)
         track = multi_step(step, pt.steps_per_call)
         self._scatter_eager = step.scatter
         self.compiled = compile
@@ -570,9 +574,8 @@ def compiled_machine(pt: PathTracer) -> StateMachine:
     by identity, everything else the compiled code depends on by value."""
     lights = Lights3(pt.lights)
     key = (str(pt.device), pt.scene.grid.density_scale, pt.majorants.brick, pt.free_flight, lights.directional,
-           lights.points, lights.env, pt.scene.albedo, pt.scene.g, pt.max_scatter,
-           float(pt.transmittance.params.get("roulette_threshold", 0.1)), pt.rr_start if pt.rr_enabled else None,
-           pt.steps_per_call, max(pt.slots, MIN_SLOTS))
+           lights.points, lights.env, pt.scene.albedo, pt.scene.g, pt.max_scatter, roulette_threshold(pt),
+           pt.rr_start if pt.rr_enabled else None, pt.steps_per_call, max(pt.slots, MIN_SLOTS))
     for i, (grid, k, machine) in enumerate(_machines):
         if grid is pt.scene.grid and k == key:
             _machines.append(_machines.pop(i))
