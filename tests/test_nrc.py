@@ -118,6 +118,9 @@ class ConstantRandom(RandomSource):
     def rand(self, n, k):
         return torch.full((n, k), self.value)
 
+    def counter_uniforms(self, key, counter, lanes):  # the transport step's per-path draws, scripted too
+        return [torch.full(key.shape, self.value)] * lanes
+
 
 def test_training_targets_match_a_hand_computed_path(tmp_path):
     """Constant medium, global majorant, every uniform 0.3: the training path is deterministic and its two

@@ -1,5 +1,7 @@
-"""The compiled backend's step code (run eagerly here: no compiler in the tests) against the eager tracer, Mitsuba
-3 and the building blocks it re-implements per component (trilinear lookup, box clipping, HG sampling, lights)."""
+"""The transport core's compiled structure (ratio-tracking shadow rays inside the step), run eagerly, against the
+eager backend and Mitsuba 3; its component-form building blocks at their owners (trilinear lookup in
+``volume/grid.py``, box exit in ``volume/box.py``, HG sampling in ``transport/phase.py``, the light table in
+``transport/light_sampling.py``) against the batched forms; one real compile shared by two scenes."""
 
 import math
 
@@ -10,17 +12,19 @@ import torch
 from conftest import hard_rays, spike_grid, unit
 from test_pt import make
 from nrc.errors import ConfigError
-from nrc.render import pt_compiled as pc
-from nrc.transport.light_sampling import LightSampler
+from nrc.transport.light_sampling import LightSampler, LightTable
 from nrc.transport.lights import PointLight
-from nrc.transport.phase import hg_sample
+from nrc.transport.phase import hg_sample, hg_sample_v3
 from nrc.transport.rng import hash32, path_key, uniforms
-from nrc.volume.grid import DensityGrid
+from nrc.volume.box import box_exit
+from nrc.volume.grid import DensityGrid, trilinear
 
 
 def render_sm(pt):
-    """Render with the state machine's step code run eagerly (the code the compiled backend compiles)."""
-    return pc.render_state_machine(pt, pc.StateMachine(pt, compile=False))
+    """Render with the compiled backend's step structure run eagerly (the code the compiled backend compiles)."""
+    pt.core.backend = "eager"
+    pt.core.eager_step = pt.core.step
+    return pt.render()
 
 
 def v3(x):
@@ -47,23 +51,28 @@ def test_trilinear_matches_grid_lookup(kind):
     faces = lo + ext * torch.rand(300, 3, generator=gen)
     faces[:100, 0], faces[100:200, 1], faces[200:, 2] = lo[0], hi[1], hi[2]  # exactly on faces
     x = torch.cat([x, faces])
-    got = pc.trilinear(grid.density, *box_of(grid), v3(x))
+    got = trilinear(grid.density.reshape(-1), grid.shape, *box_of(grid), v3(x))
     np.testing.assert_allclose(got.numpy(), grid.lookup(x).numpy(), rtol=1e-5, atol=1e-6 * grid.max_density)
     bad = torch.tensor([[math.nan, 0.0, 0.0], [math.inf, 0.0, 0.0], [0.0, -math.inf, 0.0]])
-    assert torch.equal(pc.trilinear(grid.density, *box_of(grid), v3(bad)), torch.zeros(3))
+    assert torch.equal(trilinear(grid.density.reshape(-1), grid.shape, *box_of(grid), v3(bad)), torch.zeros(3))
+    # shape and box as 0-d tensors (how the compiled step passes them): the same values
+    as_t = lambda v: tuple(torch.tensor(float(a)) for a in v)  # noqa: E731
+    lo, hi = box_of(grid)
+    got_t = trilinear(grid.density.reshape(-1), as_t(grid.shape), as_t(lo), as_t(hi), v3(x))
+    assert torch.equal(got_t, got)
 
 
 def test_box_exit_and_hg_sampling_match_the_eager_code():
     grid = spike_grid()
     o, d = hard_rays(grid)
-    np.testing.assert_array_equal(pc.box_exit(*box_of(grid), v3(o), v3(d)).numpy(), grid.box.intersect(o, d)[1].numpy())
+    np.testing.assert_array_equal(box_exit(*box_of(grid), v3(o), v3(d)).numpy(), grid.box.intersect(o, d)[1].numpy())
     gen = torch.Generator().manual_seed(1)
     dirs = unit(torch.randn(4000, 3, generator=gen))
     dirs[:3] = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
     u = torch.rand(4000, 2, generator=gen)
     for g in (-0.999, 0.0, 0.8):
         want, pdf_want = hg_sample(g, dirs, u)
-        got, pdf = pc.hg_sample3(g, v3(dirs), u[:, 0], u[:, 1])
+        got, pdf = hg_sample_v3(torch.tensor(g), v3(dirs), u[:, 0], u[:, 1])
         np.testing.assert_allclose(torch.stack(got, 1).numpy(), want.numpy(), atol=1e-6)
         np.testing.assert_allclose(pdf.numpy(), pdf_want.numpy(), rtol=1e-6)
 
@@ -79,15 +88,17 @@ def test_component_light_sampler_matches_light_sampler(preset):
     x = 30 * torch.randn(3000, 3, generator=gen)
     u = torch.rand(3000, 4, generator=gen)
     want = ls.sample(x, u)
-    lights3 = pc.Lights3(ls)
-    wi, dist, weight, light_pdf, is_env = lights3.sample(v3(x), u[:, 0], u[:, 1], u[:, 2])
+    table = LightTable(ls)
+    lanes = ([u[:, 0]] if ls.n_lights > 1 else []) + ([u[:, 1], u[:, 2]] if ls.has_uniform_env else [])
+    values = [torch.tensor(v) for v in table.values]  # as the compiled step reads them from its input
+    wi, dist, weight, light_pdf, is_env = table.sample(values, v3(x), lanes)
     np.testing.assert_allclose(torch.stack(wi, 1).numpy(), want.wi.numpy(), atol=1e-6)
     np.testing.assert_allclose(dist.numpy(), want.distance.numpy(), rtol=1e-6)
     np.testing.assert_allclose(torch.stack(weight, 1).numpy(), want.weight.numpy(), rtol=1e-5)
     np.testing.assert_allclose(light_pdf.numpy(), want.light_pdf.numpy(), rtol=1e-6)
     assert torch.equal(is_env, want.is_env)
     if ls.has_env:
-        np.testing.assert_allclose(lights3.env_pdf, ls.env_pdf(want.wi).numpy(), rtol=1e-6)
+        np.testing.assert_allclose(table.values[-1], ls.env_pdf(want.wi).numpy(), rtol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------------- RNG
@@ -138,7 +149,7 @@ def test_deterministic_and_independent_of_the_working_set(single_thread):
     # numbers depend on (seed, sample id, step) only: other slot counts add the same paths in another order
     np.testing.assert_allclose(c, b, rtol=1e-5, atol=1e-6)
     assert not np.array_equal(b, d)
-    assert a.metrics["backend"] == "state_machine_eager" and a.metrics["tracking_steps"] > 0
+    assert a.metrics["backend"] == "eager" and a.metrics["tracking_steps"] > 0
 
 
 HARD = [
@@ -180,7 +191,8 @@ def test_matches_the_eager_tracer_on_an_absorbing_medium(majorants, single_threa
 
 
 # ---------------------------------------------------------------------------------------------- backend choice
-def test_backend_choice_and_fallback_reasons():
+def test_backend_choice_and_fallback_reasons(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "empty-cache"))
     base = ["scene.camera.width=4", "scene.camera.height=2", "scene.integrator.spp=1", "scene.integrator.max_scatter=4"]
     with pytest.raises(ConfigError, match="renderer.backend"):
         make(base + ["renderer.backend=fast"])
@@ -189,13 +201,30 @@ def test_backend_choice_and_fallback_reasons():
     pt, _ = make(base + ["renderer.backend=auto", "renderer.compile_min_samples=1000"])
     r = pt.render()
     assert r.metrics["backend"] == "eager" and "compile_min_samples" in r.metrics["backend_reason"]
-    pt, _ = make(base + ["renderer.backend=compiled", "transmittance=track_length"])
-    r = pt.render()
-    assert r.metrics["backend"] == "eager" and "track_length" in r.metrics["backend_reason"]
-    # dense media run compiled too: the step uses the brick majorants (see the hard cases)
-    assert pc.unsupported_reason(make(base + ["scene.volume.density_scale=10000"])[0]) is None
+    # every estimator and dense media have a compiled form (other estimators: queued shadow rays)
+    for extra in (["transmittance=track_length"], ["scene.volume.density_scale=10000"]):
+        assert make(base + extra)[0].core.unsupported_reason() is None
     pt, _ = make(base + ["renderer.backend=eager"])
     assert pt.render().metrics["backend_reason"] is None
+
+
+def test_auto_compiles_when_the_cache_holds_the_step(tmp_path, monkeypatch):
+    """``auto`` weighs a compile against the work only when it would be cold: a marker of a finished compile of
+    the same structure in the cache directory makes it choose ``compiled`` (torch.compile is lazy: the choice is
+    read before anything compiles, through ``choose``'s inputs)."""
+    from nrc.render.wavefront import machine as wm
+
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "cache"))
+    pt, _ = make(["scene.camera.width=4", "scene.camera.height=2", "renderer.backend=auto",
+                  "renderer.compile_min_samples=1000"])
+    assert not wm.is_cached(pt.core.step, pt.device)
+    wm._marker(pt.core.step, pt.device).touch()
+    assert wm.is_cached(pt.core.step, pt.device)
+    other, _ = make(["scene.camera.width=4", "scene.camera.height=2", "scene.volume.g=0.1",
+                     "scene.volume.density_scale=3", "renderer.backend=auto"])
+    assert wm.is_cached(other.core.step, other.device)  # scene numbers are not part of the structure
+    two_lights, _ = make(["scene=sun_sky", "scene.camera.width=4", "scene.camera.height=2"])
+    assert not wm.is_cached(two_lights.core.step, two_lights.device)
 
 
 def test_latlong_environment_falls_back_with_a_reason(tmp_path):
@@ -225,20 +254,50 @@ def test_state_machine_matches_mitsuba(preset, single_thread):
 
 
 
-def test_compiled_machines_are_shared_by_tracers_of_the_same_scene_and_settings():
-    """A new tracer for another spp count or seed reuses the compiled functions (no re-trace); another grid or
-    any setting the compiled code depends on gets its own. (torch.compile is lazy: nothing compiles here.)"""
-    import dataclasses
+def test_one_machine_serves_every_scene_of_a_structure():
+    """Tracers of other scenes (another grid, g, albedo, density scale, light, camera, spp, seed) share one machine:
+    their numbers are step inputs. Another light structure or estimator gets its own."""
+    from nrc.render.wavefront.machine import machine_for
 
-    from conftest import compose
-    from nrc.render.pt import PathTracer
-    from nrc.scene import load_scene
+    def machine(overrides):
+        pt = make(["renderer.backend=compiled", *overrides])[0]
+        return machine_for(pt.core.step, 1, True, pt.device)
 
-    cfg = compose(["renderer=pt", "scene.volume.procedural.resolution=16", "renderer.backend=compiled"])
-    scene = load_scene(cfg.scene)
-    machine = pc.compiled_machine(PathTracer(scene, cfg))
-    other_samples = dataclasses.replace(scene, integrator=dataclasses.replace(scene.integrator, spp=8, seed=3))
-    assert pc.compiled_machine(PathTracer(other_samples, cfg)) is machine
-    assert pc.compiled_machine(PathTracer(dataclasses.replace(scene, g=0.3), cfg)) is not machine
-    assert pc.compiled_machine(PathTracer(load_scene(cfg.scene), cfg)) is not machine  # another grid object
-    assert pc.compiled_machine(PathTracer(scene, cfg)) is machine
+    m = machine([])
+    assert machine(["scene.volume.g=0.3", "scene.volume.albedo=0.5", "scene.volume.density_scale=2",
+                    "scene.camera.width=9", "scene.integrator.spp=3", "scene.integrator.seed=4",
+                    "scene.lights.0.direction=[0,-1,0]", "scene.volume.procedural.resolution=20"]) is m
+    assert machine(["scene=sun_sky"]) is not m
+    assert machine(["transmittance=residual_ratio"]) is not m
+
+
+@pytest.mark.slow
+def test_compiled_step_renders_a_second_scene_without_recompiling(tmp_path, monkeypatch):
+    """A real compile (cold cache): the first scene compiles the step once; a second scene with another grid
+    shape, density scale, g, albedo, light direction and camera recompiles nothing (Dynamo's counters), and
+    the compiled images agree with the eager backend within Monte Carlo error."""
+    import torch._dynamo
+
+    from conftest import assert_images_agree
+
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "cache"))
+    torch._dynamo.reset()
+    torch._dynamo.config.fail_on_recompile_limit_hit = True
+    from torch._dynamo.utils import counters
+
+    counters.clear()
+    base = ["scene.camera.width=8", "scene.camera.height=4", "scene.integrator.spp=64", "scene.integrator.max_scatter=8"]
+    first = make(base + ["renderer.backend=compiled"])[0].render()
+    assert first.metrics["backend"] == "compiled", first.metrics["backend_reason"]
+    frames_first = counters["stats"]["unique_graphs"]
+    assert frames_first >= 1
+    second_cfg = base + ["scene.volume.procedural.resolution=20", "scene.volume.density_scale=2.5",
+                         "scene.volume.g=0.3", "scene.volume.albedo=0.7", "scene.lights.0.direction=[0.3,-1,-0.2]",
+                         "scene.camera.position=[10,0,120]"]
+    images = {}
+    for backend in ("compiled", "eager"):
+        images[backend] = [make(second_cfg + [f"renderer.backend={backend}", f"scene.integrator.seed={s}"])[0]
+                           .render() for s in range(4)]
+    assert all(r.metrics["backend"] == "compiled" for r in images["compiled"])
+    assert counters["stats"]["unique_graphs"] == frames_first  # nothing recompiled for the second scene
+    assert_images_agree([r.image for r in images["compiled"]], [r.image for r in images["eager"]], block=4)

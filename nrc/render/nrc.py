@@ -47,7 +47,6 @@ from nrc.render.result import RenderResult
 from nrc.render.ring_buffer import RingBuffer, TrainingRecords
 from nrc.render.sampler import RandomSource
 from nrc.render.training_set import frame_records, training_positions, training_targets
-from nrc.render.wavefront import wavefront_majorants
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.lights import DirectionalLight
@@ -94,10 +93,11 @@ class NRCRenderer:
         tr = st.training
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(tr.ring_buffer, self.device)
-        majorants, tracking = wavefront_majorants(scene.grid, st.brick, st.free_flight)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
-        self.tracer = NRCPathTracer(scene, majorants, tracking, self.transmittance, st.termination,
-                                    tr.records_per_path, tr.extra_vertices, st.slots, st.shadow_batch)
+        self.tracer = NRCPathTracer(scene, self.transmittance, st.termination, tr.records_per_path,
+                                    tr.extra_vertices, st.slots, st.shadow_batch, st.brick, st.free_flight,
+                                    st.backend, st.steps_per_call, st.compile_min_samples)
+        self.tracer.frames = self.frames
         self.lights = LightSampler(scene.lights, self.device)
         self.reference = self._load_reference(st.reference)
         self.out_dir: Path | None = None
@@ -257,6 +257,7 @@ class NRCRenderer:
             "renderer": self.name, "frames": self.frames, "first_frame": start, "spp": self.scene.integrator.spp,
             "accumulate": st.accumulate, "transmittance": self.transmittance.name,
             "termination": st.termination.rule, "time_frames_s": elapsed,
+            "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,
             "cache_parameters": self.cache.n_parameters if hasattr(self.cache, "n_parameters") else None,
             "cache_steps": getattr(self.cache, "n_steps", None),
             "cache_skipped_steps": getattr(self.cache, "n_skipped_steps", None),

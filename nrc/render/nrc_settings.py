@@ -36,6 +36,9 @@ class NRCSettings:
 
     slots: int
     shadow_batch: int
+    backend: str
+    steps_per_call: int
+    compile_min_samples: int
     brick: int | str
     free_flight: str
     termination: Termination
@@ -58,6 +61,9 @@ class NRCSettings:
         settings = cls(
             slots=cfg.get_int("slots", 1 << 16, lo=1),
             shadow_batch=cfg.get_int("shadow_batch", 1 << 17, lo=1),
+            backend=cfg.get_choice("backend", ["auto", "eager", "compiled"], "auto"),
+            steps_per_call=cfg.get_int("steps_per_call", 1, lo=1),
+            compile_min_samples=cfg.get_int("compile_min_samples", 0, lo=0),
             brick=cfg.get_raw("brick", "auto"),  # validated by nrc.render.wavefront.wavefront_majorants
             free_flight=cfg.get_choice("free_flight", ["brick", "global"], "brick"),
             termination=Termination.from_config(cfg.block("termination")),

@@ -10,17 +10,24 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from nrc.transport.rng import uniforms
+
 
 class RandomSource:
     """Uniforms in ``[0, 1)`` from ``generator`` on ``device``."""
 
-    def __init__(self, generator: torch.Generator, device: torch.device | str) -> None:
+    # Per-path counter-based uniforms ``(key, counter, lanes) -> lanes x (N,)`` of the transport step
+    # (:func:`nrc.transport.rng.uniforms`); a scripted source replaces it too.
+    counter_uniforms = staticmethod(uniforms)
+
+    def __init__(self, generator: torch.Generator, device: torch.device | str, seed: int = 0) -> None:
         self.generator = generator
         self.device = torch.device(device)
+        self.seed = int(seed)  # keys of the per-path streams: nrc.transport.rng.path_key(seed, path id)
 
     @classmethod
     def seeded(cls, seed: int, device: torch.device | str) -> RandomSource:
-        return cls(torch.Generator(device=device).manual_seed(int(seed)), device)
+        return cls(torch.Generator(device=device).manual_seed(int(seed)), device, int(seed))
 
     def rand(self, n: int, k: int) -> Tensor:
         """``(n, k)`` float32 uniforms."""

@@ -211,3 +211,102 @@ class LightSampler:
         else:
             weight = weight * self.n_lights
         return LightSample(wi, dist, weight, light_pdf, is_env)
+
+
+def power_heuristic(a: Tensor, b: Tensor | float) -> Tensor:
+    """Power heuristic ``a^2 / (a^2 + b^2)`` (elementwise), 1 where both are zero."""
+    a2, b2 = a * a, b * b
+    den = a2 + b2
+    return torch.where(den > 0, a2 / den.clamp(min=1e-30), torch.ones_like(den))
+
+
+def _pick(m: Tensor | None, new: tuple, old: tuple) -> tuple:
+    """Component-wise ``where(m, new, old)``; ``m=None`` takes ``new`` (a light chosen with probability 1)."""
+    if m is None:
+        return tuple(n if isinstance(n, Tensor) and n.dim() else torch.zeros_like(o) + n for n, o in zip(new, old))
+    return tuple(torch.where(m, n, o) for n, o in zip(new, old))
+
+
+class LightTable:
+    """:class:`LightSampler`'s uniform selection in the form a per-slot step consumes: the *structure* (how
+    many directional and point lights, whether a uniform sky exists) is fixed, the lights' parameters are
+    numbers in :attr:`values` that a compiled step takes as an input, so moving, recolouring or dimming a
+    light does not recompile. Lat-long environment maps are not supported (:attr:`supported`).
+
+    Layout of :attr:`values`: per directional light ``-direction (3), irradiance (3)``; per point light
+    ``position (3), intensity (3)``; with a uniform sky its radiance ``(3)`` and the NEE pdf of any
+    direction, ``1 / (4 pi n_lights)``.
+
+    Args:
+        lights: the sampler whose lights are read.
+    """
+
+    def __init__(self, lights: LightSampler) -> None:
+        self.supported = not lights.env_maps
+        self.n_directional = len(lights.directional)
+        self.n_points = len(lights.points)
+        self.has_uniform_env = lights.has_uniform_env
+        self.n_lights = lights.n_lights
+        self.has_env = lights.has_env
+        vals: list[float] = []
+        for lt in lights.directional:
+            vals += [float(v) for v in (-lt.direction).tolist()] + [float(v) for v in lt.irradiance.tolist()]
+        for lt in lights.points:
+            vals += [float(v) for v in lt.position.tolist()] + [float(v) for v in lt.intensity.tolist()]
+        if self.has_uniform_env:
+            vals += [float(v) for v in lights.uniform_env.tolist()] + [1.0 / (4.0 * math.pi) / self.n_lights]
+        self.values = vals
+
+    @property
+    def structure(self) -> tuple[int, int, bool]:
+        """What a compiled step depends on: ``(directional lights, point lights, uniform sky)``."""
+        return self.n_directional, self.n_points, self.has_uniform_env
+
+    @property
+    def lanes(self) -> int:
+        """Uniforms :meth:`sample` uses: the light choice (several lights) and a sky direction (2)."""
+        return (self.n_lights > 1) + 2 * self.has_uniform_env
+
+    def sample(self, values: list, x: tuple, u: list) -> tuple[tuple, Tensor, tuple, Tensor, Tensor]:
+        """``(wi, distance, weight, light_pdf, is_env)`` as :meth:`LightSampler.sample`, in component form,
+        with :attr:`values` as numbers or 0-d tensors and ``u`` the :attr:`lanes` uniforms."""
+        n = self.n_lights
+        lane = 0
+        k = None
+        if n > 1:
+            k = (u[0] * n).long().clamp(max=n - 1)
+            lane = 1
+        zero = torch.zeros_like(x[0])
+        wi: tuple = (zero, zero + 1.0, zero)
+        dist = torch.full_like(zero, math.inf)
+        weight: tuple = (zero, zero, zero)
+        is_env = torch.zeros_like(zero, dtype=torch.bool)
+        idx, pos = 0, 0
+        for _ in range(self.n_directional):
+            m = None if k is None else k == idx
+            wi, weight = _pick(m, tuple(values[pos:pos + 3]), wi), _pick(m, tuple(values[pos + 3:pos + 6]), weight)
+            idx, pos = idx + 1, pos + 6
+        for _ in range(self.n_points):
+            m = None if k is None else k == idx
+            p, inten = values[pos:pos + 3], values[pos + 3:pos + 6]
+            to = (p[0] - x[0], p[1] - x[1], p[2] - x[2])
+            r2 = (to[0] * to[0] + to[1] * to[1] + to[2] * to[2]).clamp(min=1e-12)
+            r = torch.sqrt(r2)
+            wi = _pick(m, (to[0] / r, to[1] / r, to[2] / r), wi)
+            dist = r if m is None else torch.where(m, r, dist)
+            weight = _pick(m, (inten[0] / r2, inten[1] / r2, inten[2] / r2), weight)
+            idx, pos = idx + 1, pos + 6
+        if self.has_uniform_env:
+            m = None if k is None else k == idx
+            z = 1.0 - 2.0 * u[lane]
+            rr = torch.sqrt((1.0 - z * z).clamp(min=0.0))
+            phi = 2.0 * math.pi * u[lane + 1]
+            wi = _pick(m, (rr * torch.cos(phi), rr * torch.sin(phi), z), wi)
+            is_env = torch.ones_like(is_env) if m is None else m
+            env, pdf = values[pos:pos + 3], values[pos + 3]
+            light_pdf = torch.where(is_env, zero + pdf, zero)
+            weight = tuple(torch.where(is_env, e / pdf + zero, w * n) for e, w in zip(env, weight))
+        else:
+            light_pdf = zero
+            weight = tuple(w * n for w in weight)
+        return wi, dist, weight, light_pdf, is_env

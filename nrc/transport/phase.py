@@ -129,3 +129,19 @@ def hg_sample(g: float | Tensor, direction: Tensor, u: Tensor) -> tuple[Tensor, 
     t, b = orthonormal_basis(direction)
     new_dir = (sin_theta * torch.cos(phi))[:, None] * t + (sin_theta * torch.sin(phi))[:, None] * b + mu[:, None] * direction
     return new_dir, pdf
+
+
+def hg_sample_v3(g: float | Tensor, d: tuple[Tensor, Tensor, Tensor], u0: Tensor,
+                 u1: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
+    """:func:`hg_sample` in component form (directions as three ``(S,)`` tensors, ``g`` a float or a 0-d
+    tensor): ``(new direction, pdf)``. Elementwise only, so a compiler fuses it into its caller."""
+    mu, sin_t, pdf = hg_sample_cos(g, u0)
+    x, y, z = d
+    sign = torch.copysign(torch.ones_like(z), z)
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    t = (1.0 + sign * x * x * a, sign * b, -sign * x)
+    bb = (b, sign + y * y * a, -y)
+    phi = (2.0 * math.pi) * u1
+    c, s = sin_t * torch.cos(phi), sin_t * torch.sin(phi)
+    return (c * t[0] + s * bb[0] + mu * x, c * t[1] + s * bb[1] + mu * y, c * t[2] + s * bb[2] + mu * z), pdf

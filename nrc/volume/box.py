@@ -61,3 +61,22 @@ class Box:
         hit = t_far > t_near
         zero_t = torch.zeros_like(t_near)
         return torch.where(hit, t_near, zero_t), torch.where(hit, t_far, zero_t)
+
+
+def box_exit(lo: tuple, hi: tuple, o: tuple[Tensor, Tensor, Tensor], d: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+    """``t_far`` ``(S,)`` of :meth:`Box.intersect` for rays ``o + t d`` given per component (three ``(S,)``
+    tensors each; ``lo``/``hi`` Python numbers or 0-d tensors): 0 when the ray misses the box or it lies
+    behind. Elementwise only, so a compiler fuses it into its caller."""
+    big = torch.finfo(torch.float32).max
+    t_near, t_far = None, None
+    for a in range(3):
+        inv = 1.0 / d[a]
+        t0, t1 = (lo[a] - o[a]) * inv, (hi[a] - o[a]) * inv
+        zero = d[a] == 0
+        inside = (o[a] >= lo[a]) & (o[a] <= hi[a])
+        tmin = torch.where(zero, torch.where(inside, -big, big), torch.minimum(t0, t1))
+        tmax = torch.where(zero, torch.where(inside, big, -big), torch.maximum(t0, t1))
+        t_near = tmin if t_near is None else torch.maximum(t_near, tmin)
+        t_far = tmax if t_far is None else torch.minimum(t_far, tmax)
+    t_near = t_near.clamp(min=0.0)
+    return torch.where(t_far > t_near, t_far, torch.zeros_like(t_far))

@@ -167,3 +167,44 @@ class DensityGrid:
         peak = self.max_density
         d = self.lookup(x)
         return d / peak if peak > 0 else d
+
+
+Scalar = float | Tensor  # a Python float or a 0-d tensor (a scene parameter passed into compiled code)
+V3 = tuple[Tensor, Tensor, Tensor]  # a batch of 3-vectors as three (S,) tensors (x, y, z)
+
+
+def trilinear(flat: Tensor, shape: tuple[Scalar, Scalar, Scalar], lo: tuple[Scalar, Scalar, Scalar],
+              hi: tuple[Scalar, Scalar, Scalar], x: V3) -> Tensor:
+    """``D(x)`` ``(S,)`` at world points ``x`` (component form) by explicit gathers on the flattened
+    ``(nx, ny, nz)`` grid ``flat`` (C order): the same field as :meth:`DensityGrid.lookup` (cell-centred
+    samples, clamped within half a cell of the faces, exactly zero outside the box ``[lo, hi]``).
+
+    ``shape``, ``lo`` and ``hi`` may be Python numbers or 0-d tensors, so that a compiled caller takes them
+    as inputs (one compiled graph for every grid). Non-finite points give 0 (indices are clamped, so every
+    gather is in bounds)."""
+    inside = None
+    i0s, i1s, fs = [], [], []
+    dims = [n + torch.zeros_like(x[0]) for n in shape]  # per point: numbers or 0-d tensors alike
+    for a in range(3):
+        s = (x[a] - lo[a]) / (hi[a] - lo[a])
+        ok = (s >= 0) & (s <= 1)
+        inside = ok if inside is None else inside & ok
+        u = (s * dims[a] - 0.5).nan_to_num(0.0, 0.0, 0.0).clamp(min=0.0)
+        u = torch.minimum(u, dims[a] - 1.0)
+        f = u.floor()
+        i0 = f.long()
+        i0s.append(i0)
+        i1s.append(torch.minimum(i0 + 1, (dims[a] - 1.0).long()))
+        fs.append(u - f)
+    nz = dims[2].long()
+    sx = dims[1].long() * nz
+    bx = (i0s[0] * sx, i1s[0] * sx)
+    by = (i0s[1] * nz, i1s[1] * nz)
+    fx, fy, fz = fs
+
+    def lerp_z(i: int, j: int) -> Tensor:
+        base = bx[i] + by[j]
+        return flat[base + i0s[2]] * (1 - fz) + flat[base + i1s[2]] * fz
+
+    v = (lerp_z(0, 0) * (1 - fy) + lerp_z(0, 1) * fy) * (1 - fx) + (lerp_z(1, 0) * (1 - fy) + lerp_z(1, 1) * fy) * fx
+    return torch.where(inside, v, torch.zeros_like(v))

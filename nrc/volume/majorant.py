@@ -220,3 +220,61 @@ class BrickTraversal:
         out = ((self.cell < 0) | (self.cell > self._hi)).any(dim=-1)
         self.active = self.active & ~(mask & ((self.t >= self.t_end) | out))
         self.cell = torch.minimum(self.cell.clamp(min=0), self._hi)
+
+
+class BrickTables:
+    """Majorant grids in the form a per-slot step consumes: one flat table of brick majorants and, per grid, a
+    few scalars (``values``), so that a compiled step takes both as *inputs* (one graph for every scene).
+
+    Table 0 serves free flights and table 1 shadow rays (one table when both use the same grid). A step finds
+    a ray's brick from its current point, nudged ``1e-4`` brick edges along the ray (a point on a face
+    belongs to the brick it enters), and the distance to that brick's exit (:meth:`segment`). No traversal
+    state is carried between steps (unlike :class:`BrickTraversal`), so refills, shadow rays and compaction
+    need no bookkeeping.
+
+    Args:
+        free_flight, shadow: the :class:`MajorantGrid` of each kind of ray.
+    """
+
+    PER_TABLE = 11  # origin (3), last brick index (3), flat stride (3), brick edge, offset into flat
+
+    def __init__(self, free_flight: MajorantGrid, shadow: MajorantGrid) -> None:
+        grids = [free_flight] if shadow is free_flight else [free_flight, shadow]
+        self.n_tables = len(grids)
+        self.flat = torch.cat([g.majorant.reshape(-1) for g in grids]).float().contiguous()
+        self.values: list[float] = []
+        offset = 0
+        for g in grids:
+            self.values += [float(v) for v in g.origin.tolist()]
+            self.values += [float(n - 1) for n in g.shape]
+            self.values += [float(g.shape[1] * g.shape[2]), float(g.shape[2]), 1.0, float(g.brick_size), float(offset)]
+            offset += g.majorant.numel()
+
+    @staticmethod
+    def segment(flat: Tensor, values: list, n_tables: int, o: tuple, d: tuple, t: Tensor,
+                shadow: Tensor) -> tuple[Tensor, Tensor]:
+        """``(majorant, t_exit)`` ``(S,)`` of the brick each ray ``o + t d`` (component form) is in at ``t``;
+        ``shadow`` picks table 1 per slot when there are two. ``values`` are :attr:`values` as numbers or
+        0-d tensors. ``t_exit > t`` always (a ray on a face moves on by the nudge)."""
+        k = BrickTables.PER_TABLE
+        tables = [values[i * k:(i + 1) * k] for i in range(n_tables)]
+
+        def per_slot(j: int) -> Tensor:
+            v0 = tables[0][j] + torch.zeros_like(t)
+            if n_tables == 1:
+                return v0
+            return torch.where(shadow, tables[1][j] + torch.zeros_like(t), v0)
+
+        size = per_slot(9)
+        tn = t + size * 1e-4
+        idx = per_slot(10).long()
+        t_exit = None
+        for a in range(3):
+            org = per_slot(a)
+            c = ((o[a] + tn * d[a] - org) / size).floor().nan_to_num(0.0, 0.0, 0.0).clamp(min=0.0)
+            c = torch.minimum(c, per_slot(3 + a))
+            bound = org + (c + (d[a] > 0).to(c.dtype)) * size
+            tb = torch.where(d[a] != 0, (bound - o[a]) / d[a], torch.full_like(t, math.inf))
+            t_exit = tb if t_exit is None else torch.minimum(t_exit, tb)
+            idx = idx + c.long() * per_slot(6 + a).long()
+        return flat[idx], torch.maximum(t_exit, tn)

@@ -1,0 +1,242 @@
+"""The wavefront loop around the step: refill, harvest, compaction, the vertex pass and the shadow queue.
+
+A fixed working set of slots advances by :meth:`Machine.track` calls. Every ``REFILL_EVERY``-th call the
+finished slots are *harvested* -- their radiance rows land in the accumulator, escaped paths add the
+environment (MIS-weighted against next-event estimation unless a camera ray), terminated paths hand their
+cache query to the caller -- and refilled with new paths from the queue; once the queue is empty the state is
+compacted whenever fewer than half the slots are live. Every ``SCATTER_EVERY``-th call the slots waiting at a
+vertex run :meth:`Machine.vertex` (a subset: gathered, stepped, scattered back); next-event requests of an
+estimator without a per-step form are queued and traced in batches of ``shadow_batch`` rays.
+
+Accumulator rows: row 0 of a slot is ``dest`` (a pixel, or a training path's discard row); rows ``j >= 1``
+(``nrc``) are training records, ``n_pixels + rec_base + j - 1``.
+
+Memory: the state (``Layout``), the shadow queue (at most ``shadow_batch`` + one vertex pass of requests)
+and the caller's accumulator; independent of image size and spp.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from nrc.render.wavefront.machine import MIN_SLOTS, Machine, SceneInputs
+from nrc.render.wavefront.state import DONE, ESCAPED, QUERY, VERTEX, Layout
+from nrc.transport.light_sampling import LightSampler, power_heuristic
+
+REFILL_EVERY = 4  # calls between refills while the camera queue lasts (finished slots idle ~1.5 steps)
+# calls between vertex passes: slots at a vertex wait ~0.5 step longer (+3.6 % slot-steps) for half the
+# passes' fixed cost (nonzero, gathers; eager): ~+15 % samples/s at 2 threads (docs/benchmarks.md)
+SCATTER_EVERY = 2
+
+
+@dataclass
+class ShadowQueue:
+    """Next-event requests for a transmittance estimator without a per-step form (``transmittance`` other than
+    ratio tracking): traced in batches, contributions added to the accumulator."""
+
+    estimator: Any
+    grid: Any
+    majorants: Any
+    batch: int
+    gen: torch.Generator
+    items: list[tuple[Tensor, ...]] = field(default_factory=list)
+    queued: int = 0
+    rays: int = 0
+    seconds: float = 0.0
+
+    def push(self, x: Tensor, wi: Tensor, t1: Tensor, weight: Tensor, dest: Tensor, acc: Tensor) -> None:
+        self.items.append((x, wi, t1, weight, dest))
+        self.queued += len(x)
+        if self.queued >= self.batch:
+            self.flush(acc)
+
+    def flush(self, acc: Tensor) -> None:
+        if not self.items:
+            return
+        t0 = time.perf_counter()
+        x, wi, t1, weight, dest = (torch.cat(c) for c in zip(*self.items))
+        self.items.clear()
+        self.queued = 0
+        T = self.estimator(self.grid, self.majorants, x, wi, torch.zeros_like(t1), t1, self.gen)
+        acc.index_add_(0, dest, weight * T[:, None])
+        self.rays += len(x)
+        self.seconds += time.perf_counter() - t0
+
+
+@dataclass
+class Harvest:
+    """What ``nrc`` collects besides the accumulator (``pt`` needs none of it)."""
+
+    n_pixels: int
+    n_render: int
+    rec_x: Tensor  # (N_train * V, 3) training-record positions, written at recorded vertices
+    rec_d: Tensor
+    rec_valid: Tensor
+    scattered: Tensor  # (N_train,) bool
+    queries: dict[str, list[Tensor]] = field(default_factory=lambda: {k: [] for k in ("x", "d", "w", "dest", "pid")})
+
+
+class Wavefront:
+    """Runs ``total`` paths through ``machine`` into ``acc``.
+
+    Args:
+        machine: the step functions; inputs: the scene tensors.
+        lights: the eager light sampler (environment radiance and pdf at harvest).
+        slots: working-set size; shadow: the queue for external estimators (``None``: inline ratio tracking).
+        harvest: the NRC collections (``None`` for ``pt``).
+    """
+
+    def __init__(self, machine: Machine, inputs: SceneInputs, lights: LightSampler, slots: int,
+                 shadow: ShadowQueue | None, harvest: Harvest | None = None) -> None:
+        self.machine, self.inputs, self.lights, self.slots = machine, inputs, lights, slots
+        self.layout: Layout = machine.step.layout
+        self.shadow, self.harvest = shadow, harvest
+        self.counts = {"tracking_steps": 0, "shadow_steps": 0, "shadow_rays": 0, "scatter_events": 0,
+                       "iterations": 0, "slot_steps": 0}
+        self.timers = {"step": 0.0, "scatter": 0.0, "refill": 0.0}
+
+    def _rows(self, I: Tensor, j: Tensor | int) -> Tensor:
+        """Accumulator index of row ``j`` (per slot or one for all) of the given slots."""
+        ly = self.layout
+        dest = I[ly.i("dest")]
+        if not ly.nrc:
+            return dest
+        j = torch.as_tensor(j, device=dest.device).expand_as(dest)
+        rec = self.harvest.n_pixels + I[ly.i("rec_base")] + j - 1
+        return torch.where((j > 0) & (I[ly.i("rec_base")] >= 0), rec, dest)
+
+    def _current_row(self, I: Tensor) -> Tensor | int:
+        ly = self.layout
+        if not ly.nrc:
+            return 0
+        V = ly.rows - 1
+        n = I[ly.i("n")]
+        return torch.where(I[ly.i("rec_base")] >= 0, n.clamp(max=V), torch.zeros_like(n))
+
+    def _harvest(self, F: Tensor, I: Tensor, done: Tensor, acc: Tensor) -> None:
+        ly = self.layout
+        Fd, Id = F[:, done], I[:, done]
+        L = Fd[ly.f("L")]
+        for j in range(ly.rows):
+            acc.index_add_(0, self._rows(Id, j), L[3 * j:3 * j + 3].T)
+        flight = Id[ly.i("flight")]
+        if self.lights.has_env:
+            e = (flight == ESCAPED).nonzero().squeeze(1)
+            if len(e):
+                d = Fd[ly.f("d")][:, e].T.contiguous()
+                pdf = Fd[ly.f("pdf")][e]
+                w = torch.where(pdf > 0, power_heuristic(pdf, self.lights.env_pdf(d)), torch.ones_like(pdf))
+                Ie = Id[:, e]
+                acc.index_add_(0, self._rows(Ie, self._current_row(Ie)),
+                               Fd[ly.f("beta")][:, e].T * self.lights.env_radiance(d) * w[:, None])
+        c = self.counts
+        c["tracking_steps"] += int(Id[ly.i("cnt")].sum())
+        c["shadow_steps"] += int(Id[ly.i("n_shadow_steps")].sum())
+        hv = self.harvest
+        if hv is None:
+            return
+        q = (flight == QUERY).nonzero().squeeze(1)
+        if len(q):
+            Iq = Id[:, q]
+            hv.queries["x"].append(Fd[ly.f("o")][:, q].T)
+            hv.queries["d"].append(Fd[ly.f("d")][:, q].T)
+            hv.queries["w"].append(Fd[ly.f("beta")][:, q].T)
+            hv.queries["dest"].append(self._rows(Iq, self._current_row(Iq)))
+            hv.queries["pid"].append(Iq[ly.i("pid")])
+        train = (Id[ly.i("rec_base")] >= 0) & ((Id[ly.i("n")] > 0) | (flight == QUERY))
+        if bool(train.any()):
+            hv.scattered[Id[ly.i("pid")][train] - hv.n_render] = True
+
+    def _vertex_pass(self, F: Tensor, I: Tensor, acc: Tensor) -> None:
+        ly = self.layout
+        sc = (I[ly.i("flight")] == VERTEX).nonzero().squeeze(1)
+        if not len(sc):
+            return
+        self.counts["scatter_events"] += len(sc)
+        Fs, Is = self.machine.vertex(F.index_select(1, sc), I.index_select(1, sc), self.inputs)
+        hv = self.harvest
+        if hv is not None:
+            rec = Is[ly.i("rec")]
+            r = (rec >= 0).nonzero().squeeze(1)
+            if len(r):
+                slot = rec[r]
+                hv.rec_x[slot] = Fs[ly.f("o")][:, r].T
+                hv.rec_d[slot] = F[ly.f("d")][:, sc[r]].T  # the incoming direction (before scattering)
+                hv.rec_valid[slot] = True
+        if self.shadow is None:
+            self.counts["shadow_rays"] += int((Is[ly.i("shadow")] != 0).sum())
+        else:
+            qd = (Is[ly.i("shadow")] == 2).nonzero().squeeze(1)
+            if len(qd):
+                Iq = Is[:, qd]
+                self.shadow.push(Fs[ly.f("o")][:, qd].T.contiguous(), Fs[ly.f("wi")][:, qd].T.contiguous(),
+                                 Fs[ly.f("tse")][qd], Fs[ly.f("csh")][:, qd].T, self._rows(Iq, self._current_row(Iq)),
+                                 acc)
+                Is[ly.i("shadow"), qd] = 0
+        F.index_copy_(1, sc, Fs)
+        I.index_copy_(1, sc, Is)
+
+    def run(self, total: int, new_paths: Callable[[Tensor], tuple[Tensor, Tensor]], acc: Tensor,
+            on_done: Callable[[int], None] | None = None) -> None:
+        """Trace paths ``0 .. total-1`` (``new_paths(ids) -> (F, I)`` packs fresh ones) into ``acc``."""
+        ly, dev, c, tm = self.layout, acc.device, self.counts, self.timers
+        S = max(min(self.slots, total), 2)
+        F, I = ly.zeros(S, dev)
+        next_id, calls = 0, 0
+        i_flight, i_shadow, i_occ = ly.i("flight"), ly.i("shadow"), ly.i("occupied")
+        while True:
+            if calls % REFILL_EVERY == 0:
+                t_rf = time.perf_counter()
+                fl = I[i_flight]
+                free = ((fl == DONE) | (fl >= QUERY)) & (I[i_shadow] == 0)
+                idx = free.nonzero().squeeze(1)
+                k = 0
+                if len(idx):
+                    done = idx[I[i_occ, idx] != 0]
+                    if len(done):
+                        self._harvest(F, I, done, acc)
+                        if on_done is not None:
+                            on_done(len(done))
+                    I[i_occ, idx] = 0
+                    I[i_flight, idx] = DONE
+                    k = min(len(idx), total - next_id)
+                    if k:
+                        slots = idx[:k]
+                        Fn, In = new_paths(torch.arange(next_id, next_id + k, device=dev))
+                        F.index_copy_(1, slots, Fn)
+                        I.index_copy_(1, slots, In)
+                        next_id += k
+                S = I.shape[1]
+                live = S - len(idx) + k
+                if live == 0:
+                    tm["refill"] += time.perf_counter() - t_rf
+                    break
+                if next_id >= total and live < S // 2 and S > MIN_SLOTS:
+                    fl = I[i_flight]
+                    free = ((fl == DONE) | (fl >= QUERY)) & (I[i_shadow] == 0)
+                    keep = (~free).nonzero().squeeze(1)
+                    if len(keep) < MIN_SLOTS:  # pad with idle slots
+                        keep = torch.cat([keep, free.nonzero().squeeze(1)[: MIN_SLOTS - len(keep)]])
+                    F, I = F[:, keep].contiguous(), I[:, keep].contiguous()
+                tm["refill"] += time.perf_counter() - t_rf
+            t_st = time.perf_counter()
+            F, I = self.machine.track(F, I, self.inputs)
+            c["iterations"] += 1
+            calls += 1
+            c["slot_steps"] += I.shape[1] * self.machine.steps_per_call
+            t_sc = time.perf_counter()
+            tm["step"] += t_sc - t_st
+            if calls % SCATTER_EVERY:
+                continue
+            self._vertex_pass(F, I, acc)
+            tm["scatter"] += time.perf_counter() - t_sc
+        if self.shadow is not None:
+            self.shadow.flush(acc)
+            c["shadow_rays"] += self.shadow.rays
+            tm["shadow"] = self.shadow.seconds

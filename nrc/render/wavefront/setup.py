@@ -1,0 +1,167 @@
+"""Setting up the transport core for a renderer: majorants, the step's structure, scene inputs, the backend.
+
+``renderer.backend`` (``pt`` and ``nrc``): ``eager`` runs the step as plain PyTorch ops; ``compiled`` runs the
+same step ``torch.compile``'d; ``auto`` compiles when this process already holds the compiled step, when the
+persistent cache holds it (a compile is then a cache load of seconds), or when the work is large enough to
+repay a cold compile (``compile_min_samples`` camera samples); otherwise eager. Which backend ran and why is
+in the metrics (``backend``, ``backend_reason``, ``time_compile_s``, ``compile_cache_hit``).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from nrc.errors import ConfigError
+from nrc.render.wavefront.driver import ShadowQueue
+from nrc.render.wavefront.machine import (Machine, SceneInputs, compiled_machine_ready, is_cached,
+                                          machine_for)
+from nrc.render.wavefront.state import FLIGHT, Layout
+from nrc.render.wavefront.step import NRCRule, Transport, Uniforms
+from nrc.transport.light_sampling import LightSampler, LightTable
+from nrc.transport.rng import uniforms as counter_uniforms
+from nrc.volume.grid import DensityGrid
+from nrc.volume.majorant import BrickTables, MajorantGrid
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("auto", "eager", "compiled")
+
+
+def wavefront_majorants(grid: DensityGrid, brick: Any, free_flight: str) -> tuple[MajorantGrid, MajorantGrid]:
+    """``(majorants, tracking_majorants)`` from ``renderer.brick`` / ``renderer.free_flight``.
+
+    ``brick`` is ``'auto'`` (:meth:`MajorantGrid.auto_brick`) or an edge in voxels; shadow rays always use
+    these brick majorants. Free flights use them too (``free_flight='brick'``) or one majorant for the whole
+    box (``'global'``: a single brick).
+
+    Raises:
+        nrc.errors.ConfigError: ``brick`` or ``free_flight`` is invalid (the message names the key).
+    """
+    if brick == "auto":
+        brick = MajorantGrid.auto_brick(grid)
+    elif isinstance(brick, bool) or not isinstance(brick, int) or brick < 1:
+        raise ConfigError(f"renderer.brick must be 'auto' or an integer >= 1, got {brick!r}")
+    if free_flight not in ("brick", "global"):
+        raise ConfigError(f"renderer.free_flight must be 'brick' or 'global', got {free_flight!r}")
+    majorants = MajorantGrid(grid, brick)
+    return majorants, (majorants if free_flight == "brick" else MajorantGrid(grid, 0))
+
+
+def roulette_threshold(transmittance: Any) -> float:
+    """The ratio-tracking roulette threshold of the estimator (0 = off)."""
+    return float(transmittance.params.get("roulette_threshold", 0.1))
+
+
+@dataclass
+class Core:
+    """A renderer's transport core: the step's structure, its scene inputs and the chosen machine."""
+
+    step: Transport  # the compiled structure
+    eager_step: Transport  # the eager one (the same code; shadow rays queued for the estimator)
+    inputs: SceneInputs
+    majorants: MajorantGrid
+    tracking_majorants: MajorantGrid
+    transmittance: Any
+    sampler: LightSampler
+    device: torch.device
+    backend: str
+    steps_per_call: int
+    compile_min_samples: int
+    grid: Any = None
+    bricks: Any = None
+    scalars: tuple = ()  # (albedo, g, max_scatter, roulette threshold, rr_start, termination) for P
+    last_startup_s: float = 0.0  # compile or cache-load seconds spent by the last choose()
+
+    def inputs_for(self, lights: LightSampler) -> SceneInputs:
+        """The scene inputs with other lights of the same structure (an animated sun): only ``P`` changes."""
+        albedo, g, max_scatter, thr, rr_start, termination = self.scalars
+        P = self.step.params(self.grid, self.bricks, LightTable(lights), albedo, g, max_scatter, thr, rr_start,
+                             termination)
+        return SceneInputs(P, self.inputs.density, self.inputs.majorant)
+
+    def unsupported_reason(self) -> str | None:
+        """Why this structure cannot be compiled (``None``: it can)."""
+        if self.step.sampler is not None:
+            return "lat-long environment maps have no compiled light sampler (directional, point, uniform sky only)"
+        return None
+
+    def choose(self, samples: int) -> tuple[Machine, str, str | None]:
+        """``(machine, backend, reason)`` for a render of ``samples`` camera samples (see the module docstring)."""
+        reason = None
+        self.last_startup_s = 0.0
+        if self.backend == "eager":
+            return machine_for(self.eager_step, self.steps_per_call, False, self.device), "eager", None
+        reason = self.unsupported_reason()
+        if reason is None and self.backend == "auto":
+            warm = compiled_machine_ready(self.step, self.steps_per_call, self.device)
+            if not warm and not is_cached(self.step, self.device) and samples < self.compile_min_samples:
+                reason = (f"{samples} camera samples < renderer.compile_min_samples={self.compile_min_samples} "
+                          "and no compiled step in the cache (a cold compile would outweigh the speed-up)")
+        if reason is None:
+            machine = machine_for(self.step, self.steps_per_call, True, self.device)
+            try:
+                self.last_startup_s = machine.warm_up(self.inputs, 1 << 16)
+                return machine, "compiled", None
+            except Exception as exc:  # no C++ compiler, unsupported op, ...: the eager step still works
+                first = str(exc).splitlines()[0][:200] if str(exc) else ""
+                reason = f"torch.compile failed: {type(exc).__name__}: {first}"
+        if self.backend == "compiled":
+            log.warning("renderer.backend=compiled: falling back to eager: %s", reason)
+        return machine_for(self.eager_step, self.steps_per_call, False, self.device), "eager", reason
+
+    def shadow_queue(self, machine: Machine, grid: DensityGrid, batch: int, seed: int) -> ShadowQueue | None:
+        """The queue for shadow rays that the machine's step does not trace itself (``None``: it does)."""
+        if machine.step.inline_shadow:
+            return None
+        gen = torch.Generator(device=self.device).manual_seed(int(seed))
+        return ShadowQueue(self.transmittance, grid, self.majorants, batch, gen)
+
+
+def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float, max_scatter: int,
+               transmittance: Any, brick: Any, free_flight: str, backend: str, steps_per_call: int,
+               compile_min_samples: int, rr_start: int | None = None, nrc: NRCRule | None = None,
+               termination: Any = None, uniforms: Uniforms = counter_uniforms) -> Core:
+    """The core for a scene and a renderer's settings (``nrc``: the termination rule and ``V``)."""
+    if backend not in BACKENDS:
+        raise ConfigError(f"renderer.backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    for key, value, low in (("steps_per_call", steps_per_call, 1), ("compile_min_samples", compile_min_samples, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ConfigError(f"renderer.{key} must be an integer >= {low}, got {value!r}")
+    majorants, tracking = wavefront_majorants(grid, brick, free_flight)
+    bricks = BrickTables(tracking, majorants)
+    table = LightTable(lights)
+    thr = roulette_threshold(transmittance)
+    layout = Layout(rows=1 + (nrc.records_per_path if nrc else 0), nrc=nrc is not None)
+    # Compiled: ratio-tracking shadow rays inside the step (one step a call for every slot). Eager: shadow
+    # rays queued for the estimator, whose batched loop runs wide (per-call overhead dominates eager steps).
+    inline = transmittance.name == "ratio"
+    step = Transport(layout, table, bricks.n_tables, inline, thr > 0, rr_start is not None, nrc, uniforms,
+                     sampler=lights)
+    eager_step = Transport(layout, table, bricks.n_tables, False, thr > 0, rr_start is not None, nrc, uniforms,
+                           sampler=lights) if inline else step
+    P = step.params(grid, bricks, table, albedo, g, max_scatter, thr, rr_start, termination)
+    inputs = SceneInputs.build(P, grid.density, bricks.flat)
+    return Core(step, eager_step, inputs, majorants, tracking, transmittance, lights, grid.device, backend,
+                steps_per_call, compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr_start, termination))
+
+
+def camera_paths(layout: Layout, camera: Any, grid: DensityGrid, pix: Tensor, jitter: Tensor,
+                 key: Tensor) -> tuple[Tensor, Tensor]:
+    """Packed state of new camera paths through pixels ``pix`` ``(N,)`` at sub-pixel ``jitter`` ``(N, 2)`` with
+    RNG keys ``key``: origin at the camera, clipped to the box, throughput 1, accumulating into row ``pix``."""
+    o, d = camera.generate_rays(pix, jitter)
+    t0, t1 = grid.box.intersect(o, d)
+    F, I = layout.zeros(len(pix), pix.device)
+    F[layout.f("o")], F[layout.f("d")], F[layout.f("t")], F[layout.f("tmax")] = o.T, d.T, t0, t1
+    F[layout.f("beta")] = 1.0
+    I[layout.i("dest")], I[layout.i("key")], I[layout.i("flight")], I[layout.i("occupied")] = pix, key, FLIGHT, 1
+    if layout.nrc:
+        F[layout.f("x_prev")] = o.T
+        I[layout.i("rec_base")] = -1
+        I[layout.i("rec")] = -1
+    return F, I
