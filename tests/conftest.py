@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+import torch._dynamo
 
 from nrc.volume.grid import DensityGrid
 
@@ -15,6 +18,23 @@ CONF_DIR = REPO / "conf"
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
 
 torch.set_num_threads(2)
+# Past Dynamo's recompile limit a compiled step would silently run eagerly: in the tests that is an error.
+torch._dynamo.config.fail_on_recompile_limit_hit = True
+# The suite's compiles go to a cache of its own (renderer.backend=auto reads the cache to choose: a user's warm
+# cache must not change what the tests run).
+os.environ["TORCHINDUCTOR_CACHE_DIR"] = tempfile.mkdtemp(prefix="nrc-test-inductor-")
+
+
+@pytest.fixture
+def fresh_machines(monkeypatch, tmp_path):
+    """No compiled machines from earlier tests (a cold cache in ``tmp_path``), and none left for later ones."""
+    from nrc.render.wavefront import machine as wm
+
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
+    monkeypatch.setattr(wm, "_machines", [])
+    torch._dynamo.reset()
+    yield
+    torch._dynamo.reset()
 
 
 def compose(overrides: list[str] | None = None):

@@ -12,7 +12,20 @@ from omegaconf import OmegaConf
 
 from conftest import CONF_DIR, REPO
 
-EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
+# the thesis experiments (multiruns with a report); bench_* are single-run benchmark configs
+EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml") if not p.stem.startswith("bench_"))
+
+
+def test_canonical_benchmark_config_is_the_documented_scene():
+    """``+experiment=bench_canonical`` (docs/benchmarks.md): independent of the scene presets."""
+    cfg = compose_experiment("bench_canonical")
+    v, c, (light,) = cfg.scene.volume, cfg.scene.camera, cfg.scene.lights
+    assert v.path.endswith("wdas_cloud_sixteenth.vdb") and list(v.center) == [0, 0, 0] and v.diagonal == 107.5
+    assert (v.density_scale, v.albedo, v.g) == (0.6, 1.0, 0.8)
+    assert list(c.position) == [64, 0, 0] and list(c.look_at) == [0, 0, 0] and c.fov_y == 60
+    assert (c.width, c.height, cfg.scene.integrator.spp, cfg.scene.integrator.max_scatter) == (128, 72, 512, 64)
+    assert light.type == "directional" and list(light.direction) == [0, 0, -1] and list(light.irradiance) == [16] * 3
+    assert cfg.renderer.name == "pt" and not cfg.renderer.russian_roulette.enabled
 
 
 def compose_experiment(name: str, overrides: list[str] | None = None):

@@ -58,16 +58,36 @@ def exact_transmittance(grid, x: torch.Tensor, w: torch.Tensor, steps: int = 400
     return torch.exp(-tau)
 
 
-def render_images(cfg_overrides: list[str], seeds: int, renderer: str, cache_fn=None) -> list[np.ndarray]:
+def run_compiled_structure_eagerly(core) -> None:
+    """Make a transport core run the compiled backend's step structure (ratio tracking inside the step) eagerly:
+    the code ``backend=compiled`` compiles, without waiting for a compile."""
+    core.backend = "eager"
+    core.eager_step = core.step
+
+
+def render_images(cfg_overrides: list[str], seeds: int, renderer: str, cache_fn=None,
+                  backend: str = "eager") -> list[np.ndarray]:
+    """Independent renders (one per seed); ``backend``: ``eager``, ``step`` (the compiled structure run
+    eagerly) or ``compiled`` (a real compile)."""
     images = []
     for seed in range(seeds):
         extra = NRC_SMALL if renderer == "nrc" else []
-        cfg = compose([f"renderer={renderer}", *cfg_overrides, *extra, f"scene.integrator.seed={seed}", "frames=1"])
+        mode = "compiled" if backend == "compiled" else "eager"
+        cfg = compose([f"renderer={renderer}", *cfg_overrides, *extra, f"scene.integrator.seed={seed}", "frames=1",
+                       f"renderer.backend={mode}"])
         scene = load_scene(cfg.scene)
         if renderer == "pt":
-            images.append(PathTracer(scene, cfg).render().image)
+            tracer = PathTracer(scene, cfg)
+            if backend == "step":
+                run_compiled_structure_eagerly(tracer.core)
+            result = tracer.render()
         else:
-            images.append(NRCRenderer(scene, cfg, cache=StubCache(cache_fn(scene))).render().image)
+            r = NRCRenderer(scene, cfg, cache=StubCache(cache_fn(scene)))
+            if backend == "step":
+                run_compiled_structure_eagerly(r.tracer.core)
+            result = r.render()
+            assert result.metrics["backend"] == mode, result.metrics["backend_reason"]
+        images.append(result.image)
     return images
 
 
@@ -86,26 +106,50 @@ def sun_oracle(scene):
 SEEDS = 8
 
 
-def test_oracle_cache_makes_nrc_unbiased():
+ORACLE = [*SMALL, "scene=sun", "scene.integrator.max_scatter=2", "scene.volume.albedo=0.7", "scene.volume.g=0.5",
+          "scene.volume.density_scale=1.5", "scene.integrator.spp=16"]
+ZERO = [*SMALL, "scene=sun_sky", "scene.volume.albedo=0.9", "scene.integrator.spp=16"]
+
+
+@pytest.mark.parametrize("backend", ["eager", "step"])
+def test_oracle_cache_makes_nrc_unbiased(backend):
     """Paths may stop only at their last allowed vertex (2), where the exact radiance is single scattering;
     there they stop with probability 1/2 (and otherwise finish as the path tracer does). With that oracle
-    the NRC image equals the path tracer's within Monte Carlo error."""
-    common = [*SMALL, "scene=sun", "scene.integrator.max_scatter=2", "scene.volume.albedo=0.7", "scene.volume.g=0.5",
-              "scene.volume.density_scale=1.5"]
-    pt = render_images([*common, "scene.integrator.spp=16"], SEEDS, "pt")
-    nrc = render_images([*common, "scene.integrator.spp=16", "renderer.termination.min_vertices=2",
-                         "renderer.termination.p_continue=0.5"], SEEDS, "nrc", sun_oracle)
+    the NRC image equals the path tracer's within Monte Carlo error, on both step structures (``step``: the
+    compiled backend's code, run eagerly)."""
+    pt = render_images(ORACLE, SEEDS, "pt", backend=backend)
+    nrc = render_images([*ORACLE, "renderer.termination.min_vertices=2", "renderer.termination.p_continue=0.5"],
+                        SEEDS, "nrc", sun_oracle, backend=backend)
     assert_images_agree(nrc, pt)
 
 
-def test_zero_cache_is_a_truncated_path_tracer():
+@pytest.mark.parametrize("backend", ["eager", "step"])
+def test_zero_cache_is_a_truncated_path_tracer(backend):
     """Terminating at vertex m into a zero cache is the path tracer with max_scatter = m - 1 (sun and sky,
-    including the MIS-weighted sky reached from the last vertex)."""
-    common = [*SMALL, "scene=sun_sky", "scene.volume.albedo=0.9", "scene.integrator.spp=16"]
-    pt = render_images([*common, "scene.integrator.max_scatter=2"], SEEDS, "pt")
-    nrc = render_images([*common, "renderer.termination.min_vertices=3"], SEEDS, "nrc",
-                        lambda scene: lambda x, d: torch.zeros_like(x))
+    including the MIS-weighted sky reached from the last vertex), on both step structures."""
+    pt = render_images([*ZERO, "scene.integrator.max_scatter=2"], SEEDS, "pt", backend=backend)
+    nrc = render_images([*ZERO, "renderer.termination.min_vertices=3"], SEEDS, "nrc",
+                        lambda scene: lambda x, d: torch.zeros_like(x), backend=backend)
     assert_images_agree(nrc, pt)
+
+
+@pytest.mark.slow
+def test_compiled_nrc_matches_the_eager_nrc_and_the_oracle(fresh_machines):
+    """A real compile of the NRC step (cold cache): the oracle-cache NRC image on ``backend=compiled`` agrees
+    with the path tracer, and a second scene (other albedo, g, density scale, sun) reuses the compiled graph."""
+    from torch._dynamo.utils import counters
+
+    counters.clear()
+    pt = render_images(ORACLE, SEEDS, "pt", backend="eager")
+    nrc = render_images([*ORACLE, "renderer.termination.min_vertices=2", "renderer.termination.p_continue=0.5"],
+                        SEEDS, "nrc", sun_oracle, backend="compiled")
+    assert_images_agree(nrc, pt)
+    graphs = counters["stats"]["unique_graphs"]
+    other = [*ORACLE, "scene.volume.albedo=0.9", "scene.volume.g=0.2", "scene.volume.density_scale=0.7",
+             "scene.lights.0.direction=[0.2,-1,0.4]", "renderer.termination.min_vertices=2",
+             "renderer.termination.p_continue=0.5"]
+    render_images(other, 2, "nrc", sun_oracle, backend="compiled")
+    assert counters["stats"]["unique_graphs"] == graphs
 
 
 class ConstantRandom(RandomSource):

@@ -272,18 +272,13 @@ def test_one_machine_serves_every_scene_of_a_structure():
 
 
 @pytest.mark.slow
-def test_compiled_step_renders_a_second_scene_without_recompiling(tmp_path, monkeypatch):
+def test_compiled_step_renders_a_second_scene_without_recompiling(fresh_machines):
     """A real compile (cold cache): the first scene compiles the step once; a second scene with another grid
     shape, density scale, g, albedo, light direction and camera recompiles nothing (Dynamo's counters), and
     the compiled images agree with the eager backend within Monte Carlo error."""
-    import torch._dynamo
+    from torch._dynamo.utils import counters
 
     from conftest import assert_images_agree
-
-    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "cache"))
-    torch._dynamo.reset()
-    torch._dynamo.config.fail_on_recompile_limit_hit = True
-    from torch._dynamo.utils import counters
 
     counters.clear()
     base = ["scene.camera.width=8", "scene.camera.height=4", "scene.integrator.spp=64", "scene.integrator.max_scatter=8"]

@@ -46,6 +46,7 @@ from nrc.render.nrc_settings import NRCSettings
 from nrc.render.result import RenderResult
 from nrc.render.ring_buffer import RingBuffer, TrainingRecords
 from nrc.render.sampler import RandomSource
+from nrc.render.wavefront.machine import compiled_graphs
 from nrc.render.training_set import frame_records, training_positions, training_targets
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
@@ -258,6 +259,7 @@ class NRCRenderer:
             "accumulate": st.accumulate, "transmittance": self.transmittance.name,
             "termination": st.termination.rule, "time_frames_s": elapsed,
             "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,
+            "compiled_graphs_in_process": compiled_graphs() if self.tracer.backend == "compiled" else None,
             "cache_parameters": self.cache.n_parameters if hasattr(self.cache, "n_parameters") else None,
             "cache_steps": getattr(self.cache, "n_steps", None),
             "cache_skipped_steps": getattr(self.cache, "n_skipped_steps", None),

@@ -142,7 +142,7 @@ class NRCPathTracer:
             self._cores[uniforms] = build_core(
                 s.grid, LightSampler(s.lights, self.device), s.albedo, s.g, s.integrator.max_scatter,
                 self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V),
-                termination=self.termination, uniforms=uniforms)
+                termination=self.termination, uniforms=uniforms, inline_shadows=False)
         return self._cores[uniforms]
 
     # ------------------------------------------------------------------ new paths

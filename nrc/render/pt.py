@@ -36,6 +36,7 @@ from nrc.errors import ConfigError
 from nrc.render.result import RenderResult
 from nrc.render.wavefront import BACKENDS, build_core, camera_paths
 from nrc.render.wavefront.driver import Wavefront
+from nrc.render.wavefront.machine import compiled_graphs
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler, power_heuristic  # noqa: F401  (re-exported)
 from nrc.transport.rng import path_key, uniforms
@@ -120,6 +121,7 @@ class PathTracer:
             "time_compile_s": machine.startup_s if backend == "compiled" else 0.0,
             "compile_cache_hit": machine.cache_hit if backend == "compiled" else None,
             "compile_cache_dir": os.environ.get("TORCHINDUCTOR_CACHE_DIR") if backend == "compiled" else None,
+            "compiled_graphs_in_process": compiled_graphs() if backend == "compiled" else None,
             "time_render_s": elapsed,
             "samples_per_second": total / elapsed if elapsed > 0 else math.inf,
             **{f"time_{k}_s": v for k, v in wf.timers.items()},

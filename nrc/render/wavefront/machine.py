@@ -25,6 +25,11 @@ from torch import Tensor
 from nrc.render.wavefront.step import Transport
 
 MIN_SLOTS = 64  # compaction never goes below this (dynamic-shape kernels specialise sizes 0 and 1)
+# Inductor options. The tracking step is vectorised (SIMD C++); the vertex, which runs on the few percent of
+# slots at a real collision, is not: its vector code generation took about half of a cold compile and bought
+# nothing measurable (docs/benchmarks.md). GPUs (Triton) ignore the C++ options.
+TRACK_OPTIONS = {"assert_indirect_indexing": False}
+VERTEX_OPTIONS = {"assert_indirect_indexing": False, "cpp.vec_isa_ok": False}
 RECOMPILE_LIMIT = 64  # structures per process before Dynamo would fall back to eager (default 8)
 
 
@@ -61,10 +66,17 @@ def is_cached(step: Transport, device: torch.device) -> bool:
     return _marker(step, device).exists()
 
 
-def _compile(fn: Any) -> Any:
+def compiled_graphs() -> int:
+    """Graphs Dynamo has compiled in this process (a sweep that recompiles nothing keeps this constant)."""
+    from torch._dynamo.utils import counters
+
+    return int(counters["stats"]["unique_graphs"])
+
+
+def _compile(fn: Any, options: dict[str, Any]) -> Any:
     """``torch.compile`` of a step ``(F, I, P, density, majorant) -> (F, I)``: dynamic slot count and grid /
     table lengths (one graph for all), indices clamped in the code (no bounds assertions in the gathers)."""
-    compiled = torch.compile(fn, dynamic=False, fullgraph=True, options={"assert_indirect_indexing": False})
+    compiled = torch.compile(fn, dynamic=False, fullgraph=True, options=options)
 
     def run(F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> tuple[Tensor, Tensor]:
         torch._dynamo.mark_dynamic(F, 1)
@@ -95,7 +107,7 @@ class Machine:
         if compile:
             inductor_cache_dir()
             torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
-            self._track, self._vertex = _compile(track), _compile(step.vertex)
+            self._track, self._vertex = _compile(track, TRACK_OPTIONS), _compile(step.vertex, VERTEX_OPTIONS)
         else:
             self._track, self._vertex = track, step.vertex
         self.startup_s: float | None = None if compile else 0.0
