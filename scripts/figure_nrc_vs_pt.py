@@ -97,7 +97,7 @@ def main() -> None:
 
     late = frame_times[len(frame_times) // 2:]
     result = {
-        "overrides": overrides, "spp": args.spp, "frames": args.frames, "reference": str(ref_path),
+        "overrides": overrides, "spp": args.spp, "frames": args.frames, "reference": str(ref_path.relative_to(REPO) if ref_path.is_relative_to(REPO) else ref_path),
         "reference_spp": args.ref_spp, "reference_rel_mse_floor": ref.rel_mse_floor,
         "pt": {**score(pt_img), "time_per_frame_s": pt_time},
         "nrc": {**score(nrc_img), "time_per_frame_s": float(np.mean(late))},

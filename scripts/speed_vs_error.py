@@ -618,7 +618,8 @@ def main(argv: list[str] | None = None) -> int:
         ratios = equal_time_ratios(rows, baseline) if baseline else []
         cross = crossovers(rows, baseline) if baseline else []
         meta = {
-            "scene": " ".join(args.scene_overrides) or "defaults", "width": cam.width, "height": cam.height,
+            # paths relative to the repo root (../shared/...), never this machine's
+            "scene": " ".join(args.scene_overrides).replace(str(REPO.parent) + "/", "../") or "defaults", "width": cam.width, "height": cam.height,
             "reference": str(ref_path.relative_to(REPO) if ref_path.is_relative_to(REPO) else ref_path),
             "ref_spp": ref.attrs.get("spp"), "rel_mse_floor": ref.rel_mse_floor,
             "rel_mse_floor_medium": ref.rel_mse_floor_medium, "medium_pixels": int(mask.sum()),

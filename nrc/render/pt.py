@@ -118,7 +118,7 @@ class PathTracer:
             "samples": total,
             "slots": self.slots,
             "steps_per_call": self.steps_per_call,
-            "time_compile_s": machine.startup_s if backend == "compiled" else 0.0,
+            "time_compile_s": self.core.last_startup_s,  # spent by this render (0 when the process had it)
             "compile_cache_hit": machine.cache_hit if backend == "compiled" else None,
             "compile_cache_dir": os.environ.get("TORCHINDUCTOR_CACHE_DIR") if backend == "compiled" else None,
             "compiled_graphs_in_process": compiled_graphs() if backend == "compiled" else None,

@@ -4,7 +4,7 @@
 * :mod:`~nrc.render.wavefront.step` -- the transport step (tracking step, vertex), the same code eager or compiled;
 * :mod:`~nrc.render.wavefront.machine` -- compiled or eager execution, one compile per process and structure;
 * :mod:`~nrc.render.wavefront.driver` -- refill, harvest, compaction, the vertex pass and the shadow queue;
-* :func:`build` -- the step, its scene inputs and the backend choice for a renderer's settings.
+* :mod:`~nrc.render.wavefront.setup` (:func:`build_core`) -- majorants, the step, its scene inputs and the backend choice.
 """
 
 from nrc.render.wavefront.setup import BACKENDS, Core, build_core, camera_paths, wavefront_majorants

@@ -4,7 +4,7 @@ A fixed working set of slots advances by :meth:`Machine.track` calls. Every ``RE
 finished slots are *harvested* -- their radiance rows land in the accumulator, escaped paths add the
 environment (MIS-weighted against next-event estimation unless a camera ray), terminated paths hand their
 cache query to the caller -- and refilled with new paths from the queue; once the queue is empty the state is
-compacted whenever fewer than half the slots are live. Every ``SCATTER_EVERY``-th call the slots waiting at a
+compacted whenever fewer than 90 % of the slots are live. Every ``SCATTER_EVERY``-th call the slots waiting at a
 vertex run :meth:`Machine.vertex` (a subset: gathered, stepped, scattered back); next-event requests of an
 estimator without a per-step form are queued and traced in batches of ``shadow_batch`` rays.
 
@@ -33,6 +33,9 @@ REFILL_EVERY = 4  # calls between refills while the camera queue lasts (finished
 # calls between vertex passes: slots at a vertex wait ~0.5 step longer (+3.6 % slot-steps) for half the
 # passes' fixed cost (nonzero, gathers; eager): ~+15 % samples/s at 2 threads (docs/benchmarks.md)
 SCATTER_EVERY = 2
+# once the queue is empty, compact when fewer than this fraction of the slots are live (every step's cost grows
+# with the slot count; NRC frame at 160x90, trace: 0.5 -> 0.26 s compiled / 0.76 s eager, 0.9 -> 0.25 / 0.67 s)
+COMPACT_BELOW = 0.9
 
 
 @dataclass
@@ -195,35 +198,42 @@ class Wavefront:
                 t_rf = time.perf_counter()
                 fl = I[i_flight]
                 free = ((fl == DONE) | (fl >= QUERY)) & (I[i_shadow] == 0)
-                idx = free.nonzero().squeeze(1)
-                k = 0
-                if len(idx):
-                    done = idx[I[i_occ, idx] != 0]
-                    if len(done):
-                        self._harvest(F, I, done, acc)
-                        if on_done is not None:
-                            on_done(len(done))
-                    I[i_occ, idx] = 0
-                    I[i_flight, idx] = DONE
-                    k = min(len(idx), total - next_id)
-                    if k:
-                        slots = idx[:k]
-                        Fn, In = new_paths(torch.arange(next_id, next_id + k, device=dev))
-                        F.index_copy_(1, slots, Fn)
-                        I.index_copy_(1, slots, In)
-                        next_id += k
                 S = I.shape[1]
-                live = S - len(idx) + k
-                if live == 0:
-                    tm["refill"] += time.perf_counter() - t_rf
-                    break
-                if next_id >= total and live < S // 2 and S > MIN_SLOTS:
-                    fl = I[i_flight]
-                    free = ((fl == DONE) | (fl >= QUERY)) & (I[i_shadow] == 0)
-                    keep = (~free).nonzero().squeeze(1)
-                    if len(keep) < MIN_SLOTS:  # pad with idle slots
-                        keep = torch.cat([keep, free.nonzero().squeeze(1)[: MIN_SLOTS - len(keep)]])
-                    F, I = F[:, keep].contiguous(), I[:, keep].contiguous()
+                # Once the queue is empty, harvest only to compact or to finish: the tail's calls are short, and
+                # a harvest (a few dozen small ops) costs more than a step there.
+                due = True
+                if next_id >= total:
+                    n_free = int(free.sum())
+                    due = n_free == S or (S - n_free < COMPACT_BELOW * S and S > MIN_SLOTS)
+                if due:
+                    idx = free.nonzero().squeeze(1)
+                    k = 0
+                    if len(idx):
+                        done = idx[I[i_occ, idx] != 0]
+                        if len(done):
+                            self._harvest(F, I, done, acc)
+                            if on_done is not None:
+                                on_done(len(done))
+                        I[i_occ, idx] = 0
+                        I[i_flight, idx] = DONE
+                        k = min(len(idx), total - next_id)
+                        if k:
+                            slots = idx[:k]
+                            Fn, In = new_paths(torch.arange(next_id, next_id + k, device=dev))
+                            F.index_copy_(1, slots, Fn)
+                            I.index_copy_(1, slots, In)
+                            next_id += k
+                    live = S - len(idx) + k
+                    if live == 0:
+                        tm["refill"] += time.perf_counter() - t_rf
+                        break
+                    if next_id >= total and live < COMPACT_BELOW * S and S > MIN_SLOTS:
+                        fl = I[i_flight]
+                        free = ((fl == DONE) | (fl >= QUERY)) & (I[i_shadow] == 0)
+                        keep = (~free).nonzero().squeeze(1)
+                        if len(keep) < MIN_SLOTS:  # pad with idle slots
+                            keep = torch.cat([keep, free.nonzero().squeeze(1)[: MIN_SLOTS - len(keep)]])
+                        F, I = F[:, keep].contiguous(), I[:, keep].contiguous()
                 tm["refill"] += time.perf_counter() - t_rf
             t_st = time.perf_counter()
             F, I = self.machine.track(F, I, self.inputs)

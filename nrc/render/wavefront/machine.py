@@ -28,6 +28,9 @@ MIN_SLOTS = 64  # compaction never goes below this (dynamic-shape kernels specia
 # Inductor options. The tracking step is vectorised (SIMD C++); the vertex, which runs on the few percent of
 # slots at a real collision, is not: its vector code generation took about half of a cold compile and bought
 # nothing measurable (docs/benchmarks.md). GPUs (Triton) ignore the C++ options.
+# The C++ kernels are specialised on the process's thread count (part of the cache key): a process with
+# another count (a joblib worker gets cores / n_jobs) compiles its own entry once. (cpp.dynamic_threads would
+# avoid that, but its kernels were not reused from the cache at all in torch 2.13.)
 TRACK_OPTIONS = {"assert_indirect_indexing": False}
 VERTEX_OPTIONS = {"assert_indirect_indexing": False, "cpp.vec_isa_ok": False}
 RECOMPILE_LIMIT = 64  # structures per process before Dynamo would fall back to eager (default 8)
