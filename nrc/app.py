@@ -16,39 +16,13 @@ from typing import Any
 
 import hydra
 import numpy as np
-import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from nrc.errors import ConfigError, NRCError
+from nrc.config import CONF_DIR, absolute_paths, resolve_device
+from nrc.errors import NRCError
 
 log = logging.getLogger("nrc")
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
-
-
-def resolve_device(name: str) -> torch.device:
-    """``cpu``, ``cuda`` or ``cuda:N``; a clear error when CUDA is asked for and absent."""
-    if not isinstance(name, str) or not (name == "cpu" or name.startswith("cuda")):
-        raise ConfigError(f"device must be 'cpu' or 'cuda[:N]', got {name!r}")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"device={name} was requested but CUDA is not available on this machine; use device=cpu")
-    try:
-        return torch.device(name)
-    except RuntimeError:
-        raise ConfigError(f"device must be 'cpu' or 'cuda[:N]', got {name!r}") from None
-
-
-def _absolute_paths(cfg: DictConfig) -> None:
-    """Resolve relative file paths (scene files, renderer reference/resume) against the directory the job was launched from."""
-    vol = cfg.scene.volume
-    if vol.get("path"):
-        vol.path = hydra.utils.to_absolute_path(vol.path)
-    for light in cfg.scene.get("lights") or []:
-        if light.get("path"):
-            light.path = hydra.utils.to_absolute_path(light.path)
-    for key in ("reference", "resume"):
-        if cfg.renderer.get(key):
-            cfg.renderer[key] = hydra.utils.to_absolute_path(cfg.renderer[key])
 
 
 def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
@@ -78,7 +52,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
     try:
-        _absolute_paths(cfg)
+        absolute_paths(cfg)
         run(cfg, Path(HydraConfig.get().runtime.output_dir))
     except NRCError as exc:
         print(f"nrc: error: {exc}", file=sys.stderr)

@@ -18,7 +18,7 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from nrc.errors import ConfigError
-from nrc.render.camera import Camera
+from nrc.camera import Camera
 from nrc.transport.lights import DirectionalLight, EnvironmentLight, Light, PointLight
 from nrc.volume import DensityGrid, procedural_cloud, read_npz, read_vdb
 

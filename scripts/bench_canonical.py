@@ -7,7 +7,7 @@ count, as a user waits for them):
    first run), then the same command again (second run: the cache is warm), and with
    ``renderer.backend=eager`` / ``compiled``;
 2. Mitsuba 3 ``scalar_rgb`` and ``llvm_ad_rgb`` (when LLVM is installed) rendering the same scene through
-   :mod:`nrc.render.mitsuba_bridge` in a fresh process.
+   :mod:`nrc.evaluation.mitsuba_bridge` in a fresh process.
 
 Prints the wall times, the render times from ``metrics.json`` and the ratios; ``--json`` writes them.
 
@@ -30,12 +30,10 @@ REPO = Path(__file__).resolve().parents[1]
 MITSUBA = r"""
 import sys, time
 t0 = time.perf_counter()
-from hydra import compose, initialize_config_dir
-from nrc.render.mitsuba_bridge import render_mitsuba
+from nrc.config import compose
+from nrc.evaluation.mitsuba_bridge import render_mitsuba
 from nrc.scene import load_scene
-with initialize_config_dir(config_dir=sys.argv[1], version_base="1.3"):
-    cfg = compose(config_name="config", overrides=["+experiment=bench_canonical", f"scene.integrator.spp={sys.argv[4]}",
-                                                   "scene.volume.path=" + sys.argv[3]])
+cfg = compose(["+experiment=bench_canonical", f"scene.integrator.spp={sys.argv[4]}", "scene.volume.path=" + sys.argv[3]])
 img, secs = render_mitsuba(load_scene(cfg.scene), threads=int(sys.argv[5]), variant=sys.argv[2])
 print(f"RENDER {secs} MEAN {float(img.mean())}")
 """

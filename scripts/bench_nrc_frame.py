@@ -22,18 +22,11 @@ sys.path.insert(0, str(REPO))
 
 import torch  # noqa: E402
 
-from hydra import compose as hydra_compose  # noqa: E402
-from hydra import initialize_config_dir  # noqa: E402
-
-from nrc.render.nrc import NRCRenderer  # noqa: E402
+from nrc.config import compose  # noqa: E402
+from nrc.render.radiance_caching import NRCRenderer  # noqa: E402
 from nrc.scene import load_scene  # noqa: E402
 
 VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"  # ../shared/data/ from the repo root
-
-
-def compose(overrides: list[str]):
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        return hydra_compose(config_name="config", overrides=overrides)
 
 SIDE_LIT = ["scene=sun", "scene.volume.source=vdb", f"scene.volume.path={VDB}", "scene.volume.density_scale=0.6",
             "scene.lights.0.direction=[-1.0,-0.25,0.0]", "scene.lights.0.irradiance=[3.0,3.0,3.0]"]

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
+from nrc.config import compose  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
@@ -47,8 +47,7 @@ def config(args: argparse.Namespace, spp: int, width: int, height: int):
         "renderer.russian_roulette.enabled=false", f"renderer.backend={args.backend}",
         f"renderer.slots={args.slots}", f"renderer.steps_per_call={args.steps_per_call}", f"renderer.brick={args.brick}",
     ]
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        return compose(config_name="config", overrides=overrides)
+    return compose(overrides)
 
 
 def main() -> None:
@@ -114,7 +113,7 @@ def main() -> None:
                                               if k not in ("time_render_s", "time_compile_s")))
 
     if not args.no_mitsuba:
-        from nrc.render.mitsuba_bridge import mitsuba_available, render_mitsuba
+        from nrc.evaluation.mitsuba_bridge import mitsuba_available, render_mitsuba
 
         if mitsuba_available():
             render_mitsuba(load_scene(warm.scene), threads=args.threads)  # warm-up

@@ -22,28 +22,24 @@ import time
 from pathlib import Path
 
 import numpy as np
-from hydra import compose, initialize_config_dir
 from omegaconf import open_dict
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "scripts"))
 
-from nrc.app import CONF_DIR, _absolute_paths  # noqa: E402
-from nrc.io.preview import tonemap  # noqa: E402
-from nrc.metrics import medium_mask, rel_mse  # noqa: E402
-from nrc.render.nrc import NRCRenderer  # noqa: E402
+from nrc.config import absolute_paths, compose  # noqa: E402
+from nrc.io.png import tonemap  # noqa: E402
+from nrc.evaluation.metrics import medium_mask, rel_mse  # noqa: E402
+from nrc.render.radiance_caching import NRCRenderer  # noqa: E402
 from nrc.render.pt import PathTracer  # noqa: E402
-from nrc.render.reference import read_reference, render_reference  # noqa: E402
+from nrc.evaluation.reference import read_reference, render_reference  # noqa: E402
 from nrc.scene import load_scene  # noqa: E402
-from render_reference import default_reference_path  # noqa: E402
-from speed_vs_error import REF_SEED  # noqa: E402  (the base seed of every reference this repo renders)
+from nrc.evaluation.reference import REF_SEED, default_reference_path  # noqa: E402
 
 
 def config(overrides: list[str]):
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="config", overrides=overrides)
-    _absolute_paths(cfg)
+    cfg = compose(overrides)
+    absolute_paths(cfg)
     return cfg
 
 

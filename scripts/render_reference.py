@@ -1,4 +1,4 @@
-"""Render a converged ``pt`` reference in resumable chunks (see :mod:`nrc.render.reference`).
+"""Render a converged ``pt`` reference in resumable chunks (see :mod:`nrc.evaluation.reference`).
 
 Hydra overrides select the scene as for ``python -m nrc``; ``scene.integrator.spp`` is the total sample
 count and ``scene.integrator.seed`` the base seed (chunk ``i`` uses ``seed + i``). A killed run resumes
@@ -22,21 +22,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from nrc.app import CONF_DIR, _absolute_paths  # noqa: E402
+from nrc.config import absolute_paths, compose  # noqa: E402
 from nrc.errors import NRCError  # noqa: E402
-from nrc.render.reference import read_reference, render_reference, scene_hash  # noqa: E402
-
-DEFAULT_DIR = REPO / "data" / "references"
-
-
-def default_reference_path(cfg, spp: int) -> Path:
-    """``data/references/reference_<scene hash[:12]>_<spp>spp.exr``."""
-    return DEFAULT_DIR / f"reference_{scene_hash(cfg)[:12]}_{int(spp)}spp.exr"
+from nrc.evaluation.reference import default_reference_path, read_reference, render_reference  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,10 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="output EXR (default data/references/...)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args, overrides = parser.parse_known_args(argv)
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="config", overrides=overrides)
+    cfg = compose(overrides)
     try:
-        _absolute_paths(cfg)
+        absolute_paths(cfg)
         out = args.out or default_reference_path(cfg, int(cfg.scene.integrator.spp))
         render_reference(cfg, out, args.chunk_spp, int(cfg.scene.integrator.spp), progress=not args.no_progress)
     except NRCError as exc:

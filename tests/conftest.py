@@ -37,13 +37,7 @@ def fresh_machines(monkeypatch, tmp_path):
     torch._dynamo.reset()
 
 
-def compose(overrides: list[str] | None = None):
-    """The resolved app config for ``overrides`` (as ``python -m nrc`` would see it)."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return hydra_compose(config_name="config", overrides=overrides or [])
+from nrc.config import compose  # noqa: E402  (the resolved app config, as ``python -m nrc`` sees it)
 
 
 @pytest.fixture(scope="module")

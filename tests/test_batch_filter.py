@@ -8,7 +8,7 @@ from omegaconf import OmegaConf
 
 from conftest import CONF_DIR
 from nrc.errors import ConfigError
-from nrc.render.batch_filter import (NoFilter, QuadtreeFilter, StripeFilter, count_batches_demo,
+from nrc.render.radiance_caching.batch_filter import (NoFilter, QuadtreeFilter, StripeFilter, count_batches_demo,
                                      make_batch_filter)
 
 Rect = tuple[int, int, int, int]  # y0, x0, height, width

@@ -1,16 +1,15 @@
-"""The thesis experiments: conf/experiment/*.yaml compose, and scripts/experiments_report.py on hand-made runs."""
+"""The thesis experiments: conf/experiment/*.yaml compose, and the reports (:mod:`nrc.evaluation.experiments`,
+behind scripts/experiments_report.py) on hand-made runs."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from conftest import CONF_DIR, REPO
+from conftest import CONF_DIR
 
 # the thesis experiments (multiruns with a report); bench_* are single-run benchmark configs
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml") if not p.stem.startswith("bench_"))
@@ -39,11 +38,9 @@ def compose_experiment(name: str, overrides: list[str] | None = None):
 
 @pytest.fixture(scope="module")
 def report():
-    spec = importlib.util.spec_from_file_location("experiments_report", REPO / "scripts" / "experiments_report.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["experiments_report"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    from nrc.evaluation import experiments
+
+    return experiments
 
 
 def test_every_report_has_its_experiments(report):
@@ -73,8 +70,8 @@ def test_experiment_composes_as_a_multirun(name):
 
 
 def test_framings_include_one_without_the_cloud():
-    from nrc.metrics import medium_mask
-    from nrc.render.reference import medium_alpha
+    from nrc.evaluation.metrics import medium_mask
+    from nrc.evaluation.reference import medium_alpha
     from nrc.scene import load_scene
 
     seen = {}
@@ -99,7 +96,7 @@ def fake_run(job, cfg, renderer: str, image: np.ndarray, metrics: dict, choices:
 
 def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
     from conftest import compose
-    from nrc.render.reference import scene_hash, write_reference_exr
+    from nrc.evaluation.reference import scene_hash, write_reference_exr
 
     cfg = compose(["scene.camera.width=4", "scene.camera.height=3"])
     OmegaConf.set_struct(cfg, False)

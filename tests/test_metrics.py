@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from nrc.metrics import (
+from nrc.evaluation.metrics import (
     error_report,
     mean_relative_bias,
     medium_mask,

@@ -14,8 +14,8 @@ import torch
 
 mi = pytest.importorskip("mitsuba")
 
-from nrc.render.camera import Camera  # noqa: E402
-from nrc.render.mitsuba_bridge import (  # noqa: E402
+from nrc.camera import Camera  # noqa: E402
+from nrc.evaluation.mitsuba_bridge import (  # noqa: E402
     latlong_lookup,
     mitsuba_available,
     render_mitsuba,

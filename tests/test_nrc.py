@@ -11,11 +11,11 @@ import torch
 
 from conftest import assert_images_agree, compose
 from nrc.errors import ConfigError
-from nrc.render.inference_filter import filtered_query
-from nrc.render.nrc import NRCRenderer
+from nrc.render.radiance_caching.inference_filter import filtered_query
+from nrc.render.radiance_caching import NRCRenderer
 from nrc.render.pt import PathTracer
-from nrc.render.sampler import RandomSource
-from nrc.render.training_set import training_positions
+from nrc.transport.rng import RandomSource
+from nrc.render.radiance_caching.training_set import training_positions
 from nrc.scene import load_scene
 from nrc.transport.phase import hg_pdf, hg_sample
 

@@ -1,5 +1,7 @@
 """Path tracer: analytic render-level checks, furnace test, determinism and hard cases."""
 
+import re
+
 
 import numpy as np
 import pytest
@@ -113,3 +115,36 @@ def test_degenerate_grids_stay_finite(kind):
     assert np.isfinite(img).all()
     if kind == "empty":  # nothing scatters: the sky alone
         np.testing.assert_allclose(img, np.broadcast_to([0.35, 0.5, 0.8], img.shape), rtol=1e-6)
+
+
+@pytest.mark.parametrize("renderer, bad, message", [
+    ("pt", "+renderer.slotz=5", "renderer: unknown key(s) slotz"),
+    ("pt", "renderer.russian_roulette.start=0", "renderer.russian_roulette.start must be >= 1"),
+    ("pt", "renderer.free_flight=dda", "renderer.free_flight must be one of"),
+    ("pt", "+renderer.russian_roulette.stat=3", "renderer.russian_roulette: unknown key(s) stat"),
+    ("preview", "+renderer.chunks=5", "renderer: unknown key(s) chunks"),
+    ("preview", "renderer.chunk=0", "renderer.chunk must be >= 1"),
+])
+def test_renderer_settings_reject_unknown_and_bad_keys(renderer, bad, message):
+    """Typed settings (PathTracerSettings, PreviewSettings): a typo or a bad value is one error naming the key."""
+    from nrc.errors import ConfigError
+    from nrc.render.registry import make_renderer
+
+    cfg = compose([f"renderer={renderer}", "scene.volume.procedural.resolution=16", bad])
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        make_renderer(renderer, load_scene(cfg.scene), cfg)
+
+
+def test_path_tracer_settings_come_from_the_yaml():
+    """One home for each default: the YAML (the dataclass reads every key as required)."""
+    from omegaconf import OmegaConf
+
+    from conftest import CONF_DIR
+    from nrc.render.pt import PathTracerSettings
+
+    st = PathTracerSettings.from_config(OmegaConf.load(CONF_DIR / "renderer" / "pt.yaml"))
+    assert (st.slots, st.backend, st.russian_roulette, st.rr_start) == (65536, "auto", False, 8)
+    from nrc.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="renderer.slots is required"):
+        PathTracerSettings.from_config({"name": "pt"})

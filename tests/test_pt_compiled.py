@@ -245,7 +245,7 @@ CASES = {"sun_sky": [], "point": ["scene.lights.0.position=[30,70,40]"]}
 @pytest.mark.mitsuba
 @pytest.mark.parametrize("preset", list(CASES))
 def test_state_machine_matches_mitsuba(preset, single_thread):
-    bridge = pytest.importorskip("nrc.render.mitsuba_bridge")
+    bridge = pytest.importorskip("nrc.evaluation.mitsuba_bridge")
     if not bridge.mitsuba_available():
         pytest.skip("Mitsuba 3 is not installed")
     from test_pt_vs_mitsuba import compare_with_mitsuba

@@ -7,7 +7,7 @@ from conftest import assert_images_agree, compose
 from nrc.render.pt import PathTracer
 from nrc.scene import load_scene
 
-mitsuba_bridge = pytest.importorskip("nrc.render.mitsuba_bridge")
+mitsuba_bridge = pytest.importorskip("nrc.evaluation.mitsuba_bridge")
 if not mitsuba_bridge.mitsuba_available():
     pytest.skip("Mitsuba 3 is not installed (pip install mitsuba==3.9.1)", allow_module_level=True)
 

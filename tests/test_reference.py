@@ -1,4 +1,4 @@
-"""Chunked, resumable reference renders (``nrc.render.reference`` / ``scripts/render_reference.py``)."""
+"""Chunked, resumable reference renders (``nrc.evaluation.reference`` / ``scripts/render_reference.py``)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import pytest
 from conftest import compose
 from nrc.errors import ConfigError, NRCError
 from nrc.io import read_exr
-from nrc.metrics import medium_mask
+from nrc.evaluation.metrics import medium_mask
 from nrc.render.pt import PathTracer
-from nrc.render.reference import (
+from nrc.evaluation.reference import (
     checkpoint_path,
     config_hash,
     medium_alpha,

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from nrc.errors import ConfigError
-from nrc.render.ring_buffer import RingBuffer, TrainingRecords
+from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 
 
 def frame(gen: torch.Generator, n: int, p_valid: float, tag: float = 0.0) -> tuple[TrainingRecords, torch.Tensor]:

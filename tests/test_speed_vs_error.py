@@ -1,34 +1,27 @@
-"""Smoke test of scripts/speed_vs_error.py on a tiny procedural scene (both modes, two configurations)."""
+"""The speed-versus-error analysis (:mod:`nrc.evaluation.speed_vs_error`, the library behind
+``scripts/speed_vs_error.py``): Pareto front, interpolation, ratios, crossovers, and a smoke run on a tiny
+procedural scene (both modes, two configurations)."""
 
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
-import sys
 
 import pytest
 
 from conftest import REPO
 
-SCRIPT = REPO / "scripts" / "speed_vs_error.py"
 TINY = [
     "scene.volume.procedural.resolution=16", "scene.camera.width=16", "scene.camera.height=9",
     "scene.integrator.max_scatter=4",
 ]
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("speed_vs_error", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["speed_vs_error"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.fixture(scope="module")
 def sve():
-    return load_script()
+    from nrc.evaluation import speed_vs_error
+
+    return speed_vs_error
 
 
 def nrc_available() -> bool:
@@ -77,7 +70,7 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
             "--acc-pt-spp", "1", "--acc-configs", "all", "--quiet", "--threads", "1", *TINY]
     # the reference: a small one rendered here, then passed explicitly
     from conftest import compose
-    from nrc.render.reference import render_reference
+    from nrc.evaluation.reference import render_reference
 
     render_reference(compose(TINY + ["scene.integrator.seed=1000000"]), tmp_path / "missing.exr", 8, 32,
                      progress=False)

@@ -25,7 +25,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from nrc.cache.config import ConfigReader
+from nrc.config import ConfigReader
 from nrc.volume.grid import DensityGrid
 
 DirectionMode = Literal["vector", "spherical"]

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from nrc.cache.allocator import retain_freed_memory
-from nrc.cache.config import ConfigReader
+from nrc.config import ConfigReader
 from nrc.cache.ema import WeightEMA
 from nrc.cache.encodings.composite import CompositeEncoding
 from nrc.cache.encodings.factory import build_encoding

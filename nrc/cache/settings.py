@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from nrc.cache.config import ConfigReader
+from nrc.config import ConfigReader
 from nrc.cache.optim import AdamSettings
 
 

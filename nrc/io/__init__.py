@@ -1,6 +1,6 @@
 """Image input/output: linear EXR files and tone-mapped PNG previews."""
 
 from nrc.io.exr import read_exr, write_exr
-from nrc.io.preview import tonemap, write_png
+from nrc.io.png import tonemap, write_png
 
 __all__ = ["read_exr", "write_exr", "tonemap", "write_png"]

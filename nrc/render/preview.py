@@ -9,12 +9,14 @@ the volume's placement, not as an image of the scene.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from nrc.config import ConfigReader
 from nrc.render.result import RenderResult
 from nrc.scene import Scene
 from nrc.transport.lights import EnvironmentLight
@@ -33,6 +35,22 @@ def camera_transmittance(scene: Scene, origin: torch.Tensor, direction: torch.Te
     return torch.exp(-tau)
 
 
+@dataclass(frozen=True)
+class PreviewSettings:
+    """The validated ``renderer`` block of ``renderer=preview`` (defaults in ``conf/renderer/preview.yaml``)."""
+
+    chunk: int
+    """Camera rays per batch (memory grows linearly with it)."""
+
+    @classmethod
+    def from_config(cls, renderer: Any) -> PreviewSettings:
+        cfg = ConfigReader(renderer, "renderer")
+        cfg.get_choice("name", ["preview"])
+        settings = cls(chunk=cfg.get_int("chunk", lo=1))
+        cfg.finish()
+        return settings
+
+
 class PreviewRenderer:
     """Transmittance-only preview (see module docstring)."""
 
@@ -40,7 +58,8 @@ class PreviewRenderer:
 
     def __init__(self, scene: Scene, cfg: DictConfig) -> None:
         self.scene = scene
-        self.chunk = int(cfg.renderer.get("chunk", 1 << 16))
+        self.settings = PreviewSettings.from_config(cfg.renderer)
+        self.chunk = self.settings.chunk
 
     def render(self, progress: bool = False) -> RenderResult:
         scene, cam = self.scene, self.scene.camera

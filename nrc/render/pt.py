@@ -28,11 +28,13 @@ import os
 import time
 from typing import Any
 
+from dataclasses import dataclass
+
 import torch
 from omegaconf import DictConfig
 from tqdm import tqdm
 
-from nrc.errors import ConfigError
+from nrc.config import ConfigReader
 from nrc.render.result import RenderResult
 from nrc.render.wavefront import BACKENDS, build_core, camera_paths
 from nrc.render.wavefront.driver import Wavefront
@@ -47,6 +49,51 @@ log = logging.getLogger(__name__)
 __all__ = ["BACKENDS", "PathTracer", "power_heuristic"]
 
 
+@dataclass(frozen=True)
+class PathTracerSettings:
+    """The validated ``renderer`` block of ``renderer=pt``. Every default lives in ``conf/renderer/pt.yaml``
+    (read here as required keys); unknown keys are errors naming the key."""
+
+    slots: int
+    """Paths in flight (the working set); memory grows linearly with it (136 bytes a slot)."""
+    shadow_batch: int
+    """Queued next-event rays traced per estimator call (eager, or estimators without a per-step form)."""
+    brick: int | str
+    """Majorant-grid brick edge in voxels, or ``auto`` (sized to the medium's density)."""
+    free_flight: str
+    """Delta-tracking majorant: ``brick`` or ``global``."""
+    russian_roulette: bool
+    """Throughput roulette on."""
+    rr_start: int
+    """First scattering event at which the roulette may stop a path."""
+    backend: str
+    """``auto`` | ``eager`` | ``compiled`` (:mod:`nrc.render.wavefront.setup`)."""
+    compile_min_samples: int
+    """``auto`` with a cold cache: renders of fewer camera samples stay eager."""
+    steps_per_call: int
+    """Tracking steps unrolled per compiled call."""
+
+    @classmethod
+    def from_config(cls, renderer: Any) -> PathTracerSettings:
+        cfg = ConfigReader(renderer, "renderer")
+        cfg.get_choice("name", ["pt"])
+        rr = cfg.block("russian_roulette")
+        settings = cls(
+            slots=cfg.get_int("slots", lo=1),
+            shadow_batch=cfg.get_int("shadow_batch", lo=1),
+            brick=cfg.get_raw("brick"),  # 'auto' or an edge, validated by wavefront_majorants
+            free_flight=cfg.get_choice("free_flight", ["brick", "global"]),
+            russian_roulette=rr.get_bool("enabled"),
+            rr_start=rr.get_int("start", lo=1),
+            backend=cfg.get_choice("backend", list(BACKENDS)),
+            compile_min_samples=cfg.get_int("compile_min_samples", lo=0),
+            steps_per_call=cfg.get_int("steps_per_call", lo=1),
+        )
+        for block in (rr, cfg):
+            block.finish()
+        return settings
+
+
 class PathTracer:
     """The wavefront path tracer (see module docstring).
 
@@ -58,27 +105,18 @@ class PathTracer:
     name = "pt"
 
     def __init__(self, scene: Scene, cfg: DictConfig) -> None:
-        r = cfg.renderer
+        self.settings = st = PathTracerSettings.from_config(cfg.renderer)
         self.scene = scene
         self.device = scene.device
-        self.slots = int(r.get("slots", 1 << 16))
-        self.shadow_batch = int(r.get("shadow_batch", 1 << 17))
-        if self.slots < 1 or self.shadow_batch < 1:
-            raise ConfigError("renderer.slots and renderer.shadow_batch must be >= 1")
-        rr = r.get("russian_roulette") or {}
-        self.rr_enabled = bool(rr.get("enabled", False))
-        self.rr_start = int(rr.get("start", 8))
-        self.free_flight = r.get("free_flight", "brick")
+        self.slots, self.shadow_batch = st.slots, st.shadow_batch
+        self.free_flight, self.backend, self.steps_per_call = st.free_flight, st.backend, st.steps_per_call
         self.transmittance = make_transmittance(cfg.get("transmittance"))
         self.lights = LightSampler(scene.lights, self.device)
         self.spp = scene.integrator.spp
         self.max_scatter = scene.integrator.max_scatter
-        self.backend = r.get("backend", "eager")
-        self.steps_per_call = r.get("steps_per_call", 1)
-        self.compile_min_samples = r.get("compile_min_samples", 0)
         self.core = build_core(scene.grid, self.lights, scene.albedo, scene.g, self.max_scatter, self.transmittance,
-                               r.get("brick", "auto"), self.free_flight, self.backend, self.steps_per_call,
-                               self.compile_min_samples, self.rr_start if self.rr_enabled else None)
+                               st.brick, st.free_flight, st.backend, st.steps_per_call, st.compile_min_samples,
+                               st.rr_start if st.russian_roulette else None)
         self.majorants, self.tracking_majorants = self.core.majorants, self.core.tracking_majorants
 
     def _camera_paths(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -11,7 +11,7 @@ from nrc.errors import ConfigError
 RENDERERS: dict[str, str] = {
     "preview": "nrc.render.preview:PreviewRenderer",
     "pt": "nrc.render.pt:PathTracer",
-    "nrc": "nrc.render.nrc:NRCRenderer",
+    "nrc": "nrc.render.radiance_caching:NRCRenderer",
 }
 
 

@@ -9,6 +9,10 @@ Hash: Chris Wellons' ``lowbias32`` family, constants ``[16 21f0aaad 15 735a2d97 
 2^31, so every product of a 32-bit value fits in int64 without overflow). All arithmetic is on int64 tensors
 holding values in ``[0, 2^32)``.
 
+:class:`RandomSource` wraps a ``torch.Generator`` for the randomness that is not per path (the NRC frame's
+training positions, the queued shadow rays' estimators) and carries the per-path function, so a test can script
+both.
+
 Uniforms: the top 24 bits of a hash, ``u = (h >> 8) * 2^-24``, exactly representable in float32 and in
 ``[0, 1 - 2^-24]`` (so ``-log1p(-u)`` is always finite).
 """
@@ -51,3 +55,24 @@ def uniforms(key: Tensor, counter: Tensor, lanes: int) -> list[Tensor]:
     """
     s = hash32(key ^ hash32(counter))
     return [(hash32(s ^ (((j + 1) * _GOLDEN) & MASK32)) >> 8).to(torch.float32) * _INV_2_24 for j in range(lanes)]
+
+
+class RandomSource:
+    """Uniforms in ``[0, 1)`` from ``generator`` on ``device``."""
+
+    # Per-path counter-based uniforms ``(key, counter, lanes) -> lanes x (N,)`` of the transport step
+    # (:func:`nrc.transport.rng.uniforms`); a scripted source replaces it too.
+    counter_uniforms = staticmethod(uniforms)
+
+    def __init__(self, generator: torch.Generator, device: torch.device | str, seed: int = 0) -> None:
+        self.generator = generator
+        self.device = torch.device(device)
+        self.seed = int(seed)  # keys of the per-path streams: nrc.transport.rng.path_key(seed, path id)
+
+    @classmethod
+    def seeded(cls, seed: int, device: torch.device | str) -> RandomSource:
+        return cls(torch.Generator(device=device).manual_seed(int(seed)), device, int(seed))
+
+    def rand(self, n: int, k: int) -> Tensor:
+        """``(n, k)`` float32 uniforms."""
+        return torch.rand(n, k, generator=self.generator, device=self.device)

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from nrc.cache.config import ConfigReader
+from nrc.config import ConfigReader
 from nrc.cache.encodings.frequency import FrequencyEncoding
 from nrc.cache.encodings.hashgrid import HashGridEncoding
 from nrc.cache.encodings.identity import IdentityEncoding

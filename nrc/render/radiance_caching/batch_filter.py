@@ -41,7 +41,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from nrc.cache.config import ConfigReader
+from nrc.config import ConfigReader
 from nrc.errors import ConfigError
 
 Slices = list[tuple[int, int]]

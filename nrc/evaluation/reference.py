@@ -10,7 +10,7 @@ then deleted.
 
 The EXR also stores the **medium mask** as its ``A`` channel: ``alpha = 1 - T``, the transmittance ``T``
 of the camera rays through the medium (no scattering; pixel centres, midpoint quadrature with one-voxel
-steps). ``nrc.metrics.medium_mask(alpha)`` turns it into the
+steps). ``nrc.evaluation.metrics.medium_mask(alpha)`` turns it into the
 pixel set "where the reference sees the medium". :func:`read_reference` returns image, alpha and header.
 
 **The reference's own noise.** The checkpoint also accumulates the per-pixel sum of squares of the
@@ -29,6 +29,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import OpenEXR
@@ -36,7 +37,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from nrc.app import resolve_device
+from nrc.config import resolve_device
 from nrc.errors import ConfigError, NRCError
 from nrc.io import read_exr, write_exr
 from nrc.render.preview import camera_transmittance
@@ -142,7 +143,7 @@ def reference_noise_floor(total: np.ndarray, total_sq: np.ndarray, n: int, alpha
     term = var_chunk / n / (mean**2 + eps)
     med = -1.0
     if alpha is not None:
-        from nrc.metrics import medium_mask
+        from nrc.evaluation.metrics import medium_mask
 
         m = medium_mask(alpha)
         med = float(term[m].mean()) if m.any() else -1.0
@@ -258,3 +259,12 @@ def render_reference(
     write_reference_exr(out, reference, alpha, attrs)
     ckpt.unlink()
     return reference
+
+
+REF_SEED = 1_000_000  # the base seed of every reference this repo renders (scored renders use seeds from 1000)
+REFERENCE_DIR = Path(__file__).resolve().parents[2] / "data" / "references"
+
+
+def default_reference_path(cfg: Any, spp: int) -> Path:
+    """``data/references/reference_<scene hash[:12]>_<spp>spp.exr`` in the checkout."""
+    return REFERENCE_DIR / f"reference_{scene_hash(cfg)[:12]}_{int(spp)}spp.exr"

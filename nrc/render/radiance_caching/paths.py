@@ -7,7 +7,7 @@ estimation at every real scattering vertex (one light chosen uniformly, transmit
 the step or the configured estimator), phase sampling with MIS against the environment. The NRC part of the
 step is its vertex: the termination rule, the training records and the cache query.
 
-Cache termination (:mod:`nrc.render.termination`) at a real scattering vertex ``m``: the path stops
+Cache termination (:mod:`nrc.render.radiance_caching.termination`) at a real scattering vertex ``m``: the path stops
 without next-event estimation and adds ``beta x cache(x_m, d_m)`` where ``beta`` is its throughput up to
 ``x_m`` (before ``x_m``'s albedo) and ``d_m`` the unit direction of travel arriving at ``x_m``. The cache
 therefore stores the radiance scattered at ``x`` towards ``-d`` (albedo included): ``L_s(x, d) = albedo x
@@ -40,9 +40,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from nrc.render.camera import Camera
-from nrc.render.sampler import RandomSource
-from nrc.render.termination import Termination
+from nrc.camera import Camera
+from nrc.transport.rng import RandomSource
+from nrc.render.radiance_caching.termination import Termination
 from nrc.render.wavefront import build_core, camera_paths
 from nrc.render.wavefront.driver import Harvest, Wavefront
 from nrc.render.wavefront.step import NRCRule

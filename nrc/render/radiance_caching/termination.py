@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from nrc.cache.config import ConfigReader
+from nrc.config import ConfigReader
 
 RULES = ("count", "spread")
 

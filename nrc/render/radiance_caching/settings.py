@@ -1,7 +1,7 @@
 """Settings of ``renderer=nrc`` read from the ``renderer`` block (``conf/renderer/nrc.yaml``), validated.
 
 Every key is checked (type and range) and unknown keys are errors naming the key, like the cache's
-config blocks (:class:`nrc.cache.config.ConfigReader`).
+config blocks (:class:`nrc.config.ConfigReader`).
 """
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from nrc.cache.config import ConfigReader
-from nrc.render.termination import Termination
+from nrc.config import ConfigReader
+from nrc.render.radiance_caching.termination import Termination
 
 ANIMATIONS = ("none", "orbit", "sun")
 

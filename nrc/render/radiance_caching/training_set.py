@@ -7,7 +7,7 @@
 * Paths are traced in the batch filter's buffer order: path ``k`` belongs to training pixel
   ``order[k]`` and owns records ``[k V, (k + 1) V)``, so a filter batch of pixels ``[a, b)`` is the
   record slice ``[a V, b V)``.
-* Targets follow ``T_j = acc_j + albedo x T_{j+1}`` (see :mod:`nrc.render.nrc_paths`).
+* Targets follow ``T_j = acc_j + albedo x T_{j+1}`` (see :mod:`nrc.render.radiance_caching.paths`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from nrc.render.ring_buffer import TrainingRecords
+from nrc.render.radiance_caching.ring_buffer import TrainingRecords
 
 
 def training_positions(order: Tensor, train_width: int, train_height: int, image_width: int, image_height: int,

@@ -1,18 +1,25 @@
-"""Typed, validated reading of the cache's JSON-like config blocks.
+"""Configuration, the ground floor every other module may use: typed reading of config blocks, composing the
+app config, file paths and the device.
 
-The cache is configured by plain mappings (``dict`` or Hydra ``DictConfig``). :class:`ConfigReader`
-reads one block, checks each value's type and range, and raises :class:`~nrc.errors.ConfigError`
-with the full dotted key (e.g. ``encoding.position.n_levels must be >= 1, got 0``). After reading,
-:meth:`ConfigReader.finish` rejects keys the block does not know, so typos never pass silently.
+* :class:`ConfigReader` reads one block (plain mappings or Hydra ``DictConfig``), checks each value's type
+  and range, and raises :class:`~nrc.errors.ConfigError` with the full dotted key (e.g.
+  ``encoding.position.n_levels must be >= 1, got 0``). After reading, :meth:`ConfigReader.finish` rejects keys
+  the block does not know, so typos never pass silently. Every component's settings dataclass is built by it.
+* :func:`compose` -- the resolved app config for a list of overrides, as ``python -m nrc`` sees it (every
+  script composes through it); :func:`absolute_paths` resolves the config's file paths against the launch
+  directory; :func:`resolve_device` checks ``device``.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from nrc.errors import ConfigError
+
+CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 _REQUIRED = object()
 
@@ -126,3 +133,48 @@ class ConfigReader:
             raise ConfigError(f"{self.key(name)} must be >= {lo}, got {value}")
         if hi is not None and value > hi:
             raise ConfigError(f"{self.key(name)} must be <= {hi}, got {value}")
+
+
+def compose(overrides: Sequence[str] | None = None, return_hydra_config: bool = False) -> Any:
+    """The app config (``conf/config.yaml``) with ``overrides`` applied, as ``python -m nrc`` would see it."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return hydra_compose(config_name="config", overrides=list(overrides or []),
+                             return_hydra_config=return_hydra_config)
+
+
+def absolute_paths(cfg: Any) -> None:
+    """Resolve the config's relative file paths (scene volume and light files, ``renderer.reference`` /
+    ``resume``) against the directory the job was launched from (Hydra's original working directory when
+    inside a Hydra job, else the current directory)."""
+    try:
+        from hydra.utils import to_absolute_path
+        absolute = to_absolute_path
+    except ImportError:  # pragma: no cover - hydra-core is a dependency
+        absolute = lambda p: str(Path(p).resolve())  # noqa: E731
+
+    vol = cfg.scene.volume
+    if vol.get("path"):
+        vol.path = absolute(vol.path)
+    for light in cfg.scene.get("lights") or []:
+        if light.get("path"):
+            light.path = absolute(light.path)
+    for key in ("reference", "resume"):
+        if cfg.renderer.get(key):
+            cfg.renderer[key] = absolute(cfg.renderer[key])
+
+
+def resolve_device(name: str) -> Any:
+    """``cpu``, ``cuda`` or ``cuda:N`` as a ``torch.device``; a clear error when CUDA is asked for and absent."""
+    import torch
+
+    if not isinstance(name, str) or not (name == "cpu" or name.startswith("cuda")):
+        raise ConfigError(f"device must be 'cpu' or 'cuda[:N]', got {name!r}")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"device={name} was requested but CUDA is not available on this machine; use device=cpu")
+    try:
+        return torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"device must be 'cpu' or 'cuda[:N]', got {name!r}") from None

@@ -2,12 +2,12 @@
 
 Each frame (``frames`` in the root config):
 
-1. **trace** (:mod:`nrc.render.nrc_paths`): ``spp`` render paths per pixel, terminated into the cache by
+1. **trace** (:mod:`nrc.render.radiance_caching.paths`): ``spp`` render paths per pixel, terminated into the cache by
    ``renderer.termination``, and one self-training path per training pixel, in one wavefront;
-2. **infer** (:mod:`nrc.render.inference_filter`): the cache (EMA weights, as trained up to the previous
+2. **infer** (:mod:`nrc.render.radiance_caching.inference_filter`): the cache (EMA weights, as trained up to the previous
    frame) is queried at every termination, in batches of ``inference.batch_size`` query slots; batches
    without a query are skipped;
-3. **train**: training targets by the backward recurrence (:mod:`nrc.render.training_set`), the batch
+3. **train**: training targets by the backward recurrence (:mod:`nrc.render.radiance_caching.training_set`), the batch
    filter (``batch_filter`` group) picks the batches of the training image to train, invalid records are
    replaced from the ring buffer of earlier frames, one Adam step per batch, then the frame's valid
    records enter the ring buffer.
@@ -37,17 +37,17 @@ from tqdm import tqdm
 
 from nrc.cache.radiance_cache import build_radiance_cache
 from nrc.errors import ConfigError
-from nrc.render.batch_filter import make_batch_filter
-from nrc.render.camera import Camera
-from nrc.render.frame_log import FrameLog
-from nrc.render.inference_filter import filtered_query
-from nrc.render.nrc_paths import NRCPathTracer, PathSet
-from nrc.render.nrc_settings import NRCSettings
+from nrc.render.radiance_caching.batch_filter import make_batch_filter
+from nrc.camera import Camera
+from nrc.render.radiance_caching.frame_log import FrameLog
+from nrc.render.radiance_caching.inference_filter import filtered_query
+from nrc.render.radiance_caching.paths import NRCPathTracer, PathSet
+from nrc.render.radiance_caching.settings import NRCSettings
 from nrc.render.result import RenderResult
-from nrc.render.ring_buffer import RingBuffer, TrainingRecords
-from nrc.render.sampler import RandomSource
+from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
+from nrc.transport.rng import RandomSource
 from nrc.render.wavefront.machine import compiled_graphs
-from nrc.render.training_set import frame_records, training_positions, training_targets
+from nrc.render.radiance_caching.training_set import frame_records, training_positions, training_targets
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.lights import DirectionalLight
@@ -238,7 +238,7 @@ class NRCRenderer:
                 output = image
             out_np = output.cpu().numpy()
             if self.reference is not None:
-                from nrc.metrics import mse, rel_mse
+                from nrc.evaluation.metrics import mse, rel_mse
 
                 stats["rel_mse"] = rel_mse(out_np, self.reference)
                 stats["mse"] = mse(out_np, self.reference)

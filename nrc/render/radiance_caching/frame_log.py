@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from nrc.io.preview import tonemap
+from nrc.io.png import tonemap
 
 
 class FrameLog:

@@ -1,0 +1,60 @@
+"""The package's layers (docs/architecture.md): imports only go down, and no script imports another script."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from conftest import REPO
+
+# lower number = lower layer; a module may import its own layer and the ones below
+LAYERS = {
+    "nrc.errors": 0, "nrc.config": 0,
+    "nrc.io": 1, "nrc.volume": 1, "nrc.camera": 1,
+    "nrc.transport": 2, "nrc.scene": 2,
+    "nrc.cache": 3,
+    "nrc.render": 4,
+    "nrc.evaluation": 5,
+    "nrc.evaluation.metrics": 1,  # pure array functions: the NRC frame loop logs relMSE against a reference
+    "nrc.app": 6, "nrc.__main__": 6, "nrc": 6,  # the package root re-exports
+}
+
+
+def layer_of(module: str) -> int | None:
+    best = None
+    for prefix, layer in LAYERS.items():
+        if module == prefix or (prefix != "nrc" and module.startswith(prefix + ".")):
+            if best is None or len(prefix) > len(best[0]):
+                best = (prefix, layer)
+    return None if best is None else best[1]
+
+
+def imports(path: Path) -> list[str]:
+    tree = ast.parse(path.read_text())
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.append(node.module)
+    return out
+
+
+def test_imports_only_go_down():
+    bad = []
+    for path in sorted((REPO / "nrc").rglob("*.py")):
+        module = ".".join(path.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
+        own = layer_of(module)
+        assert own is not None, f"{module} has no layer in docs/architecture.md"
+        for target in imports(path):
+            if target.startswith("nrc"):
+                layer = layer_of(target)
+                if layer is not None and layer > own:
+                    bad.append(f"{module} (layer {own}) imports {target} (layer {layer})")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_script_imports_another_script():
+    scripts = {p.stem for p in (REPO / "scripts").glob("*.py")}
+    bad = [f"{p.name} imports {t}" for p in (REPO / "scripts").glob("*.py") for t in imports(p) if t in scripts]
+    assert not bad, bad
