@@ -220,6 +220,9 @@ def test_auto_compiles_when_the_cache_holds_the_step(tmp_path, monkeypatch):
     assert not wm.is_cached(pt.core.step, pt.device)
     wm._marker(pt.core.step, pt.device).touch()
     assert wm.is_cached(pt.core.step, pt.device)
+    # a cached step is loaded only for renders that repay the ~4 s load (warm_fraction of compile_min_samples)
+    machine, backend, reason = pt.core.choose(100)
+    assert backend == "eager" and "loading the cached compiled step" in reason
     other, _ = make(["scene.camera.width=4", "scene.camera.height=2", "scene.volume.g=0.1",
                      "scene.volume.density_scale=3", "renderer.backend=auto"])
     assert wm.is_cached(other.core.step, other.device)  # scene numbers are not part of the structure

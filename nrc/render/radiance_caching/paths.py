@@ -143,6 +143,7 @@ class NRCPathTracer:
                 s.grid, LightSampler(s.lights, self.device), s.albedo, s.g, s.integrator.max_scatter,
                 self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V),
                 termination=self.termination, uniforms=uniforms, inline_shadows=False)
+            self._cores[uniforms].warm_fraction = 1 / 12  # see Core.warm_fraction
         return self._cores[uniforms]
 
     # ------------------------------------------------------------------ new paths

@@ -76,6 +76,11 @@ class Core:
     bricks: Any = None
     scalars: tuple = ()  # (albedo, g, max_scatter, roulette threshold, rr_start, termination) for P
     last_startup_s: float = 0.0  # compile or cache-load seconds spent by the last choose()
+    # auto with the step in the persistent cache: compile (a ~4 s load) from this fraction of compile_min_samples
+    # on. Measured break-evens (2 cores): pt saves ~4.4 us a camera sample (170k -> 650k samples/s), so a 4.5 s
+    # warm start pays from ~1 M samples = 1/4 of its 4 M; an nrc path saves ~15 us (frame 0.92 -> 0.46 s for
+    # 30,784 paths), so from ~0.3 M paths x frames = 1/12 of its 4 M.
+    warm_fraction: float = 0.25
 
     def inputs_for(self, lights: LightSampler) -> SceneInputs:
         """The scene inputs with other lights of the same structure (an animated sun): only ``P`` changes."""
@@ -97,9 +102,14 @@ class Core:
         if self.backend == "eager":
             return machine_for(self.eager_step, self.steps_per_call, False, self.device), "eager", None
         reason = self.unsupported_reason()
-        if reason is None and self.backend == "auto":
-            warm = compiled_machine_ready(self.step, self.steps_per_call, self.device)
-            if not warm and not is_cached(self.step, self.device) and samples < self.compile_min_samples:
+        if reason is None and self.backend == "auto" and not compiled_machine_ready(self.step, self.steps_per_call,
+                                                                                  self.device):
+            if is_cached(self.step, self.device):
+                warm_min = int(self.compile_min_samples * self.warm_fraction)
+                if samples < warm_min:
+                    reason = (f"{samples} samples < {warm_min} (renderer.compile_min_samples x {self.warm_fraction:.3g}):"
+                              " even loading the cached compiled step (~4 s) would outweigh the speed-up")
+            elif samples < self.compile_min_samples:
                 reason = (f"{samples} camera samples < renderer.compile_min_samples={self.compile_min_samples} "
                           "and no compiled step in the cache (a cold compile would outweigh the speed-up)")
         if reason is None:
