@@ -57,7 +57,7 @@ REPO = Path(__file__).resolve().parents[2]  # the checkout (data/references, out
 
 from nrc.config import CONF_DIR, compose, resolve_device  # noqa: E402
 from nrc.evaluation.metrics import mean_relative_bias, medium_mask, mse, rel_mse, relative_variance  # noqa: E402
-from nrc.evaluation.reference import REF_SEED, default_reference_path, read_reference, render_reference, scene_hash  # noqa: E402,F401
+from nrc.evaluation.reference import REF_SEED, default_reference_path, read_reference, render_reference  # noqa: E402
 from nrc.scene import load_scene  # noqa: E402
 
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"

@@ -40,13 +40,13 @@ from nrc.render.wavefront import BACKENDS, build_core, camera_paths
 from nrc.render.wavefront.driver import Wavefront
 from nrc.render.wavefront.machine import compiled_graphs
 from nrc.scene import Scene
-from nrc.transport.light_sampling import LightSampler, power_heuristic  # noqa: F401  (re-exported)
+from nrc.transport.light_sampling import LightSampler
 from nrc.transport.rng import path_key, uniforms
 from nrc.transport.transmittance import make_transmittance
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BACKENDS", "PathTracer", "power_heuristic"]
+__all__ = ["BACKENDS", "PathTracer", "PathTracerSettings"]
 
 
 @dataclass(frozen=True)
@@ -117,7 +117,7 @@ class PathTracer:
         self.core = build_core(scene.grid, self.lights, scene.albedo, scene.g, self.max_scatter, self.transmittance,
                                st.brick, st.free_flight, st.backend, st.steps_per_call, st.compile_min_samples,
                                st.rr_start if st.russian_roulette else None)
-        self.majorants, self.tracking_majorants = self.core.majorants, self.core.tracking_majorants
+        self.majorants = self.core.majorants
 
     def _camera_paths(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Packed camera paths for sample ids (``pixel = id // spp``); the jitter is the path's draw 0."""
@@ -134,7 +134,8 @@ class PathTracer:
         machine, backend, reason = self.core.choose(total)
         image = torch.zeros(cam.num_pixels, 3, device=self.device)
         wf = Wavefront(machine, self.core.inputs, self.lights, self.slots,
-                       self.core.shadow_queue(machine, self.scene.grid, self.shadow_batch, self.scene.integrator.seed))
+                       self.core.shadow_queue(machine, self.shadow_batch,
+                                              torch.Generator(device=self.device).manual_seed(self.scene.integrator.seed)))
         bar = tqdm(total=total, unit="sample", unit_scale=True, disable=not progress, desc="pt", leave=False,
                    mininterval=1.0)
         start = time.perf_counter()

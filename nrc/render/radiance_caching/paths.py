@@ -131,7 +131,6 @@ class NRCPathTracer:
         self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples)
         self._cores: dict = {}
         self.core = self._core(RandomSource.counter_uniforms)
-        self.majorants, self.tracking_majorants = self.core.majorants, self.core.tracking_majorants
         self.frames = 1  # frames the renderer will trace (backend=auto weighs a compile against all of them)
         self.backend: str | None = None
         self.backend_reason: str | None = None
@@ -147,10 +146,10 @@ class NRCPathTracer:
         return self._cores[uniforms]
 
     # ------------------------------------------------------------------ new paths
-    def _new_paths(self, ids: Tensor, ps: PathSet, rng: RandomSource, layout) -> tuple[Tensor, Tensor]:
+    def _new_paths(self, ids: Tensor, ps: PathSet, rng: RandomSource, layout, discard: int) -> tuple[Tensor, Tensor]:
+        """Packed new paths for ids; training paths accumulate into ``discard`` until their first vertex."""
         cam, dev = ps.camera, self.device
         n = len(ids)
-        n_rows = cam.num_pixels + ps.n_train * self.V + 1
         key = path_key(rng.seed, ids)
         is_train = ids >= ps.n_render
         k = (ids - ps.n_render).clamp(min=0)
@@ -166,7 +165,7 @@ class NRCPathTracer:
         else:
             never = torch.zeros(n, dtype=torch.bool, device=dev)
         F, I = camera_paths(layout, cam, self.scene.grid, pix, jitter, key)
-        I[layout.i("dest")] = torch.where(is_train, n_rows - 1, pix)
+        I[layout.i("dest")] = torch.where(is_train, discard, pix)
         I[layout.i("pid")] = ids
         I[layout.i("extra")] = torch.where(is_train, self.extra_vertices, 0)
         I[layout.i("never")] = never.long()
@@ -187,12 +186,10 @@ class NRCPathTracer:
                      torch.zeros(ps.n_train * V, 3, device=dev),
                      torch.zeros(ps.n_train * V, dtype=torch.bool, device=dev),
                      torch.zeros(ps.n_train, dtype=torch.bool, device=dev))
-        shadow = core.shadow_queue(machine, self.scene.grid, self.shadow_batch, rng.seed)
-        if shadow is not None:
-            shadow.gen = rng.generator
+        shadow = core.shadow_queue(machine, self.shadow_batch, rng.generator)
         wf = Wavefront(machine, core.inputs_for(lights), lights, self.slots, shadow, hv)
         layout = machine.step.layout
-        wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout), acc)
+        wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, n_rows - 1), acc)
         counts = dict(wf.counts)
         timers = {"trace_" + k: v for k, v in wf.timers.items()}
         timers["compile"] = core.last_startup_s

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from nrc.render.wavefront.machine import MIN_SLOTS, Machine, SceneInputs
-from nrc.render.wavefront.state import DONE, ESCAPED, QUERY, VERTEX, Layout
+from nrc.render.wavefront.state import DONE, ESCAPED, QUERY, VERTEX, Layout, accumulator_row
 from nrc.transport.light_sampling import LightSampler, power_heuristic
 
 REFILL_EVERY = 4  # calls between refills while the camera queue lasts (finished slots idle ~1.5 steps)
@@ -116,11 +116,7 @@ class Wavefront:
 
     def _current_row(self, I: Tensor) -> Tensor | int:
         ly = self.layout
-        if not ly.nrc:
-            return 0
-        V = ly.rows - 1
-        n = I[ly.i("n")]
-        return torch.where(I[ly.i("rec_base")] >= 0, n.clamp(max=V), torch.zeros_like(n))
+        return accumulator_row(I[ly.i("rec_base")], I[ly.i("n")], ly.rows - 1) if ly.nrc else 0
 
     def _harvest(self, F: Tensor, I: Tensor, done: Tensor, acc: Tensor) -> None:
         ly = self.layout

@@ -64,10 +64,8 @@ class Core:
     step: Transport  # the compiled structure
     eager_step: Transport  # the eager one (the same code; shadow rays queued for the estimator)
     inputs: SceneInputs
-    majorants: MajorantGrid
-    tracking_majorants: MajorantGrid
+    majorants: MajorantGrid  # the shadow rays' brick majorants (the queued estimators use them)
     transmittance: Any
-    sampler: LightSampler
     device: torch.device
     backend: str
     steps_per_call: int
@@ -97,7 +95,6 @@ class Core:
 
     def choose(self, samples: int) -> tuple[Machine, str, str | None]:
         """``(machine, backend, reason)`` for a render of ``samples`` camera samples (see the module docstring)."""
-        reason = None
         self.last_startup_s = 0.0
         if self.backend == "eager":
             return machine_for(self.eager_step, self.steps_per_call, False, self.device), "eager", None
@@ -124,12 +121,12 @@ class Core:
             log.warning("renderer.backend=compiled: falling back to eager: %s", reason)
         return machine_for(self.eager_step, self.steps_per_call, False, self.device), "eager", reason
 
-    def shadow_queue(self, machine: Machine, grid: DensityGrid, batch: int, seed: int) -> ShadowQueue | None:
-        """The queue for shadow rays that the machine's step does not trace itself (``None``: it does)."""
+    def shadow_queue(self, machine: Machine, batch: int, gen: torch.Generator) -> ShadowQueue | None:
+        """The queue for shadow rays that the machine's step does not trace itself (``None``: it does); its
+        estimator draws from ``gen``."""
         if machine.step.inline_shadow:
             return None
-        gen = torch.Generator(device=self.device).manual_seed(int(seed))
-        return ShadowQueue(self.transmittance, grid, self.majorants, batch, gen)
+        return ShadowQueue(self.transmittance, self.grid, self.majorants, batch, gen)
 
 
 def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float, max_scatter: int,
@@ -159,7 +156,7 @@ def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float,
                            sampler=lights) if inline else step
     P = step.params(grid, bricks, table, albedo, g, max_scatter, thr, rr_start, termination)
     inputs = SceneInputs.build(P, grid.density, bricks.flat)
-    return Core(step, eager_step, inputs, majorants, tracking, transmittance, lights, grid.device, backend,
+    return Core(step, eager_step, inputs, majorants, transmittance, grid.device, backend,
                 steps_per_call, compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr_start, termination))
 
 

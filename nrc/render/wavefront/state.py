@@ -52,6 +52,12 @@ _INT = ["dest", "key", "cnt", "n", "flight", "shadow", "occupied", "n_shadow_ste
 _INT_NRC = ["pid", "rec_base", "n_term", "extra", "never", "rec"]
 
 
+def accumulator_row(rec_base: Tensor, n: Tensor, V: int) -> Tensor:
+    """Accumulator row ``(S,)`` of each slot's current segment: a training path's ``min(n, V)`` (row 0 is its
+    discard row before the first vertex), 0 (its ``dest``) for a render path."""
+    return torch.where(rec_base >= 0, n.clamp(max=V), torch.zeros_like(n))
+
+
 @dataclass
 class PathState:
     """The unpacked state: every attribute an ``(S,)`` tensor, a 3-tuple of them, or (``L``) a tuple of

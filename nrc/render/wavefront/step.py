@@ -38,7 +38,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState
+from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState, accumulator_row
 from nrc.transport.light_sampling import LightSampler, LightTable, power_heuristic
 from nrc.transport.phase import hg_pdf, hg_sample_v3
 from nrc.transport.rng import uniforms as counter_uniforms
@@ -132,9 +132,6 @@ class Transport:
         vals += bricks.values + lights.values
         return torch.tensor(vals, dtype=torch.float32, device=grid.device)
 
-    def _p(self, P: Tensor) -> tuple[Tensor, ...]:
-        return P.unbind(0)
-
     def _vec(self, p: tuple[Tensor, ...], name: str) -> tuple[Tensor, Tensor, Tensor]:
         k = self.ix[name]
         return p[k], p[k + 1], p[k + 2]
@@ -143,14 +140,13 @@ class Transport:
         """Accumulator row ``(S,)`` that contributions of each slot's current segment go to (``None``: row 0)."""
         if self.layout.rows == 1:
             return None
-        V = self.layout.rows - 1
-        return torch.where(s.rec_base >= 0, s.n.clamp(max=V), torch.zeros_like(s.n))
+        return accumulator_row(s.rec_base, s.n, self.layout.rows - 1)
 
     # ------------------------------------------------------------------ one tracking step
     def track(self, F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> tuple[Tensor, Tensor]:
         """One tracking step of every slot (see the module docstring)."""
         s = self.layout.unpack(F, I)
-        p = self._p(P)
+        p = P.unbind(0)
         lo, hi, dims = self._vec(p, "lo"), self._vec(p, "hi"), self._vec(p, "dims")
         scale, max_scatter, thr = p[self.ix["scale"]], p[self.ix["max_scatter"]], p[self.ix["roulette"]]
         bricks = list(p[self.ix["bricks"]:self.ix["lights"]])
@@ -214,7 +210,7 @@ class Transport:
     def vertex(self, F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> tuple[Tensor, Tensor]:
         """Every given slot waits at a real collision (``VERTEX``): terminate (``nrc``) or scatter."""
         s = self.layout.unpack(F, I)
-        p = self._p(P)
+        p = P.unbind(0)
         lo, hi = self._vec(p, "lo"), self._vec(p, "hi")
         albedo, g, max_scatter = p[self.ix["albedo"]], p[self.ix["g"]], p[self.ix["max_scatter"]]
         u = self.uniforms(s.key, s.cnt, self.lanes)
