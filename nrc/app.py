@@ -28,9 +28,11 @@ log = logging.getLogger("nrc")
 def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     """Render the configured scene and write the outputs into ``out_dir``; returns the metrics."""
     from nrc.io import write_exr, write_png
+    from nrc.io.png import DisplaySettings
     from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
+    display = DisplaySettings.from_config(cfg)
     t0 = time.perf_counter()
     device = resolve_device(cfg.device)
     scene = load_scene(cfg.scene, device)
@@ -42,8 +44,10 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     image = np.nan_to_num(result.image, nan=0.0, posinf=0.0, neginf=0.0)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_exr(out_dir / "image.exr", image)
-    write_png(out_dir / "preview.png", image, float(cfg.get("exposure", 1.0)))
-    metrics = {"time_scene_load_s": t_load, **result.metrics, "device": str(device)}
+    exposure = display.exposure_for(image)
+    write_png(out_dir / "preview.png", image, exposure, display.tonemap)
+    metrics = {"time_scene_load_s": t_load, **result.metrics, "device": str(device),
+               "preview": {"tonemap": display.tonemap, "exposure": exposure}}
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     log.info("wrote %s (image.exr, preview.png, metrics.json)", out_dir)
     return metrics

@@ -21,6 +21,7 @@ from nrc.errors import ConfigError
 from nrc.camera import Camera
 from nrc.transport.lights import DirectionalLight, EnvironmentLight, Light, PointLight
 from nrc.volume import DensityGrid, procedural_cloud, read_npz, read_vdb
+from nrc.volume.procedural import KINDS as PROCEDURAL_KINDS
 
 VOLUME_SOURCES = ("procedural", "vdb", "npz")
 LIGHT_TYPES = ("directional", "point", "environment")
@@ -109,7 +110,11 @@ def load_density(volume: Mapping[str, Any]) -> np.ndarray | torch.Tensor:
         if len(res_list) != 3 or any(isinstance(r, bool) or not isinstance(r, int) or r < 8 for r in res_list):
             raise ConfigError(f"scene.volume.procedural.resolution must be an int >= 8 or 3 of them, got {res!r}")
         seed = _integer(proc.get("seed", 0), "scene.volume.procedural.seed", 0)
-        return procedural_cloud(res_list, seed)
+        kind = proc.get("kind", "blobs")
+        if kind not in PROCEDURAL_KINDS:
+            raise ConfigError(f"scene.volume.procedural.kind must be one of {', '.join(PROCEDURAL_KINDS)}, "
+                              f"got {kind!r}")
+        return procedural_cloud(res if isinstance(res, int) else res_list, seed, kind)
     if source == "vdb":
         path = _existing_file(volume.get("path"), "scene.volume.path")
         return read_vdb(path, volume.get("grid"))

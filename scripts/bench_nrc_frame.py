@@ -28,7 +28,7 @@ from nrc.scene import load_scene  # noqa: E402
 
 VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"  # ../shared/data/ from the repo root
 
-SIDE_LIT = ["scene=sun", "scene.volume.source=vdb", f"scene.volume.path={VDB}", "scene.volume.density_scale=0.6",
+SIDE_LIT = ["scene=sun_front", "scene.volume.source=vdb", f"scene.volume.path={VDB}", "scene.volume.density_scale=0.6",
             "scene.lights.0.direction=[-1.0,-0.25,0.0]", "scene.lights.0.irradiance=[3.0,3.0,3.0]"]
 
 

@@ -40,7 +40,7 @@ DEFAULT_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
 
 def config(args: argparse.Namespace, spp: int, width: int, height: int):
     overrides = [
-        "renderer=pt", "scene=sun", "scene.volume.source=vdb", f"scene.volume.path={args.vdb}",
+        "renderer=pt", "scene=sun_front", "scene.volume.source=vdb", f"scene.volume.path={args.vdb}",
         "scene.volume.density_scale=0.6", "scene.volume.g=0.8", "scene.integrator.max_scatter=64",
         f"scene.integrator.spp={spp}", f"scene.camera.width={width}", f"scene.camera.height={height}",
         f"renderer.free_flight={args.free_flight}", f"transmittance={args.transmittance}",

@@ -48,6 +48,35 @@ def test_app_reports_bad_input_in_one_line(tmp_path, override, message):
     assert "Traceback" not in proc.stderr
 
 
+def test_default_scene_preview_shows_the_cloud(tmp_path):
+    """The default scene's preview (auto exposure, ACES) at a quarter of the default size: the cloud covers a
+    quarter of the frame or more, the mean display luminance is mid-grey, almost nothing clips."""
+    from PIL import Image
+
+    proc = subprocess.run([sys.executable, "-m", "nrc", f"hydra.run.dir={tmp_path}", "renderer=pt",
+                           "scene.camera.width=80", "scene.camera.height=45", "scene.integrator.spp=8"],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    png = np.asarray(Image.open(tmp_path / "preview.png")).astype(np.float32) / 255.0
+    lum = png @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    assert 0.2 <= lum.mean() <= 0.6
+    assert (png >= 1.0).any(-1).mean() <= 0.01
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["preview"]["tonemap"] == "aces" and metrics["preview"]["exposure"] > 0
+    from nrc.config import compose
+    from nrc.evaluation.reference import medium_alpha
+    from nrc.scene import load_scene
+
+    alpha = medium_alpha(load_scene(compose(["scene.camera.width=80", "scene.camera.height=45"]).scene))
+    assert (alpha > 0.1).mean() >= 0.25
+
+
+def test_app_rejects_a_bad_exposure_before_rendering(tmp_path):
+    proc = run_app(tmp_path, "renderer=preview", "exposure=-1")
+    assert proc.returncode == 2 and "exposure must be 'auto' or a positive finite number" in proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "image.exr").exists()
+
+
 NRC_TINY = ["renderer=nrc", "frames=3", "renderer.training.width=8", "renderer.training.height=8",
             "cache.network.n_neurons=16", "cache.network.n_hidden_layers=1", "encoding.position.n_levels=2",
             "encoding.position.log2_hashmap_size=10", "renderer.log.image_every=1"]

@@ -106,7 +106,7 @@ def sun_oracle(scene):
 SEEDS = 8
 
 
-ORACLE = [*SMALL, "scene=sun", "scene.integrator.max_scatter=2", "scene.volume.albedo=0.7", "scene.volume.g=0.5",
+ORACLE = [*SMALL, "scene=sun_front", "scene.integrator.max_scatter=2", "scene.volume.albedo=0.7", "scene.volume.g=0.5",
           "scene.volume.density_scale=1.5", "scene.integrator.spp=16"]
 ZERO = [*SMALL, "scene=sun_sky", "scene.volume.albedo=0.9", "scene.integrator.spp=16"]
 
@@ -171,7 +171,7 @@ def test_training_targets_match_a_hand_computed_path(tmp_path):
     records carry a (NEE_1 + a (NEE_2 + C)) and a (NEE_2 + C)."""
     np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
     sigma, albedo, g, c, u = 0.08, 0.8, 0.6, torch.tensor([0.2, 0.3, 0.4]), 0.3
-    cfg = compose(["renderer=nrc", "scene=sun", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
+    cfg = compose(["renderer=nrc", "scene=sun_front", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
                    f"scene.volume.density_scale={sigma}", f"scene.volume.albedo={albedo}", f"scene.volume.g={g}",
                    "scene.camera.width=1", "scene.camera.height=1", "scene.camera.position=[0,0,150]",
                    "scene.camera.look_at=[0,0,0]", "scene.integrator.spp=1", "renderer.free_flight=global",
@@ -230,7 +230,7 @@ def test_training_queries_use_the_configured_weights(tmp_path, weights):
     reference). Deterministic path as in the hand-computed test: records carry ``a^2 C`` and ``a C``."""
     np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
     albedo, c_ema, c_raw = 0.8, torch.tensor([0.2, 0.3, 0.4]), torch.tensor([1.0, 2.0, 3.0])
-    base = ["renderer=nrc", "scene=sun", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
+    base = ["renderer=nrc", "scene=sun_front", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
             "scene.volume.density_scale=0.08", f"scene.volume.albedo={albedo}", "scene.camera.width=1",
             "scene.camera.height=1", "scene.camera.position=[0,0,150]", "scene.camera.look_at=[0,0,0]",
             "scene.integrator.spp=1", "renderer.free_flight=global", "renderer.training.width=1",
@@ -336,7 +336,7 @@ def test_bad_nrc_settings_name_the_key(override, message):
 
 
 def test_orbit_and_sun_animation_rotate_about_world_up():
-    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun", "renderer.animate.mode=orbit",
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun_front", "renderer.animate.mode=orbit",
                    "renderer.animate.degrees_per_frame=90"])
     scene = load_scene(cfg.scene)
     r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
@@ -347,7 +347,7 @@ def test_orbit_and_sun_animation_rotate_about_world_up():
     assert (rel0[[0, 2]] * rel1[[0, 2]]).sum().item() == pytest.approx(0.0, abs=1e-3)  # a quarter turn
     torch.testing.assert_close(torch.linalg.cross(cam1.forward, cam1.up), cam1.right, atol=1e-5, rtol=0)
     assert r.frame_lights(1) is r.lights  # orbit leaves the lights alone
-    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun", "renderer.animate.mode=sun",
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun_front", "renderer.animate.mode=sun",
                    "renderer.animate.degrees_per_frame=180"])
     r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
     (sun,) = scene.lights

@@ -226,8 +226,8 @@ def test_auto_compiles_when_the_cache_holds_the_step(tmp_path, monkeypatch):
     other, _ = make(["scene.camera.width=4", "scene.camera.height=2", "scene.volume.g=0.1",
                      "scene.volume.density_scale=3", "renderer.backend=auto"])
     assert wm.is_cached(other.core.step, other.device)  # scene numbers are not part of the structure
-    two_lights, _ = make(["scene=sun_sky", "scene.camera.width=4", "scene.camera.height=2"])
-    assert not wm.is_cached(two_lights.core.step, two_lights.device)
+    no_sky, _ = make(["scene=sun_front", "scene.camera.width=4", "scene.camera.height=2"])  # another structure
+    assert not wm.is_cached(no_sky.core.step, no_sky.device)
 
 
 def test_latlong_environment_falls_back_with_a_reason(tmp_path):
@@ -270,7 +270,7 @@ def test_one_machine_serves_every_scene_of_a_structure():
     assert machine(["scene.volume.g=0.3", "scene.volume.albedo=0.5", "scene.volume.density_scale=2",
                     "scene.camera.width=9", "scene.integrator.spp=3", "scene.integrator.seed=4",
                     "scene.lights.0.direction=[0,-1,0]", "scene.volume.procedural.resolution=20"]) is m
-    assert machine(["scene=sun_sky"]) is not m
+    assert machine(["scene=sun_front"]) is not m  # the sun without a sky: another light structure
     assert machine(["transmittance=residual_ratio"]) is not m
 
 

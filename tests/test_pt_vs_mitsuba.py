@@ -40,14 +40,22 @@ def test_pt_matches_mitsuba_under_a_latlong_environment(tmp_path):
     compare_with_mitsuba(["scene.lights.0.radiance=null", f"+scene.lights.0.path={tmp_path / 'env.exr'}"], "sky")
 
 
+def test_pt_matches_mitsuba_on_the_default_scene():
+    """The default scene as it ships (the cumulus, back-lit sun and sky, g 0.8, albedo 1), on a coarser grid
+    and with at most 6 scattering events (the same truncation on both sides)."""
+    compare_with_mitsuba([], "sun", medium=[])
+
+
 def compare_with_mitsuba(extra: list[str], preset: str, render=lambda tracer: tracer.render(),
-                         seeds: int = SEEDS) -> None:
+                         seeds: int = SEEDS, medium: list[str] | None = None) -> None:
     """``render(PathTracer)`` against Mitsuba on a small scene, over ``seeds`` independent renders of each (the
-    standard errors come from their spread: Welch's t with about ``2 seeds - 2`` degrees of freedom)."""
+    standard errors come from their spread: Welch's t with about ``2 seeds - 2`` degrees of freedom).
+    ``medium`` replaces the default ``g 0.6, albedo 0.9`` (``[]``: the preset's own)."""
+    medium = ["scene.volume.g=0.6", "scene.volume.albedo=0.9"] if medium is None else medium
     overrides = [
         "renderer=pt", f"scene={preset}", *extra, "scene.volume.procedural.resolution=24",
         "scene.camera.width=16", "scene.camera.height=8", "scene.integrator.spp=256",
-        "scene.integrator.max_scatter=6", "scene.volume.g=0.6", "scene.volume.albedo=0.9",
+        "scene.integrator.max_scatter=6", *medium,
     ]
     ours, theirs = [], []
     for seed in range(seeds):

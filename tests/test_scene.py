@@ -15,7 +15,8 @@ SMALL = ["scene.volume.procedural.resolution=16", "scene.camera.width=8", "scene
 @pytest.mark.parametrize(
     "preset, kinds",
     [
-        ("sun", [DirectionalLight]),
+        ("sun", [DirectionalLight, EnvironmentLight]),
+        ("sun_front", [DirectionalLight]),
         ("point", [PointLight]),
         ("sky", [EnvironmentLight]),
         ("sun_sky", [DirectionalLight, EnvironmentLight]),
@@ -25,7 +26,10 @@ def test_presets_load_on_the_procedural_cloud(preset, kinds):
     cfg = compose([f"scene={preset}", *SMALL])
     scene = load_scene(cfg.scene)
     assert [type(light) for light in scene.lights] == kinds
-    assert scene.grid.shape == (16, 16, 16)
+    if preset == "sun_front":  # the original `blobs` cloud on its cube lattice
+        assert scene.grid.shape == (16, 16, 16)
+    else:  # the cumulus, cropped to its density (+1 empty voxel a side)
+        assert max(scene.grid.shape) <= 16 and min(scene.grid.shape) >= 8
     assert scene.camera.width == 8 and scene.camera.height == 6
     assert 0 < scene.grid.max_density <= 1
 
@@ -62,7 +66,7 @@ BAD = [
     ("scene.camera.width=0", "scene.camera.width"),
     ("scene.camera.height=-3", "scene.camera.height"),
     ("scene.camera.fov_y=180", "scene.camera.fov_y"),
-    ("scene.camera.up=[0,-12,-150]", "scene.camera.up"),  # parallel to look_at - position
+    ("scene.camera.up=[0,25,-150]", "scene.camera.up"),  # parallel to the default look_at - position
     ("scene.integrator.spp=0", "scene.integrator.spp"),
     ("scene.integrator.max_scatter=-1", "scene.integrator.max_scatter"),
     ("scene.volume.source=vdb", "scene.volume.path"),

@@ -63,7 +63,7 @@ from nrc.scene import load_scene  # noqa: E402
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
 PRESETS: dict[str, list[str]] = {
     "disney": [
-        "scene=sun", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
+        "scene=sun_front", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
         "scene.volume.density_scale=0.6", "scene.camera.width=160", "scene.camera.height=90",
     ],
     "none": [],

@@ -3,7 +3,8 @@
 TensorBoard tags: ``loss/step`` (every training step), ``loss/frame`` (mean per frame), ``time/<stage>``
 for ``trace`` (with its parts ``free_flight`` and ``shadow``), ``infer``, ``train`` and ``frame``
 (seconds), ``error/rel_mse`` and ``error/mse`` when a reference is given, and ``image/frame`` /
-``image/output`` (tone-mapped) every ``image_every`` frames.
+``image/output`` (tone-mapped) every ``image_every`` frames, each with one exposure for the whole run (with
+``exposure: auto``, the exposure of its first logged image) so the images show the convergence.
 """
 
 from __future__ import annotations
@@ -13,16 +14,17 @@ from typing import Any
 
 import numpy as np
 
-from nrc.io.png import tonemap
+from nrc.io.png import DisplaySettings, tonemap
 
 
 class FrameLog:
     """Collects per-frame statistics (``history``) and mirrors them to TensorBoard when ``log_dir`` is set."""
 
-    def __init__(self, log_dir: Path | None, image_every: int, exposure: float = 1.0) -> None:
+    def __init__(self, log_dir: Path | None, image_every: int, display: DisplaySettings | None = None) -> None:
         self.history: dict[str, list[Any]] = {}
         self.image_every = image_every
-        self.exposure = exposure
+        self.display = display or DisplaySettings()
+        self.exposure: dict[str, float] = {}  # per image name, fixed at its first log (auto: from that image)
         self.writer = None
         if log_dir is not None:
             from torch.utils.tensorboard import SummaryWriter
@@ -47,7 +49,11 @@ class FrameLog:
                 self.writer.add_scalar("loss/frame" if key == "loss" else f"error/{key}", value, frame)
         if self.image_every and frame % self.image_every == 0:
             for name, img in images.items():
-                self.writer.add_image(f"image/{name}", tonemap(img, self.exposure), frame, dataformats="HWC")
+                if name not in self.exposure:
+                    self.exposure[name] = self.display.exposure_for(img)
+                k = self.exposure[name]
+                self.writer.add_image(f"image/{name}", tonemap(img, k, self.display.tonemap), frame,
+                                      dataformats="HWC")
 
     def load(self, history: dict[str, list[Any]]) -> None:
         self.history = {k: list(v) for k, v in history.items()}

@@ -37,6 +37,7 @@ from tqdm import tqdm
 
 from nrc.cache.radiance_cache import build_radiance_cache
 from nrc.errors import ConfigError
+from nrc.io.png import DisplaySettings
 from nrc.render.radiance_caching.batch_filter import make_batch_filter
 from nrc.camera import Camera
 from nrc.render.radiance_caching.frame_log import FrameLog
@@ -69,7 +70,7 @@ class NRCRenderer:
     Args:
         scene: the validated scene.
         cfg: the app config (uses ``renderer``, ``frames``, ``cache``, ``encoding``, ``extra_inputs``,
-            ``batch_filter``, ``transmittance``, ``exposure``).
+            ``batch_filter``, ``transmittance``, ``tonemap``, ``exposure``).
         cache: a radiance cache to use instead of building one from the config (tests inject stubs).
     """
 
@@ -82,7 +83,7 @@ class NRCRenderer:
         self.frames = int(cfg.get("frames", 1))
         if self.frames < 1:
             raise ConfigError(f"frames must be >= 1, got {self.frames}")
-        self.exposure = float(cfg.get("exposure", 1.0))
+        self.display = DisplaySettings.from_config(cfg)
         for group in ("cache", "encoding", "extra_inputs", "batch_filter"):
             if cache is not None and group != "batch_filter":
                 continue
@@ -218,7 +219,7 @@ class NRCRenderer:
         """Run ``frames`` frames; ``on_frame(frame, image, output, stats)`` is called after each."""
         st, cam = self.settings, self.scene.camera
         log_dir = self.out_dir / "tensorboard" if (self.out_dir is not None and st.tensorboard) else None
-        log = FrameLog(log_dir, st.image_every, self.exposure)
+        log = FrameLog(log_dir, st.image_every, self.display)
         accum = torch.zeros(cam.height, cam.width, 3, device=self.device)
         start, n_accum = 0, 0
         if st.resume is not None:
