@@ -1,14 +1,20 @@
 """The Hydra application: ``python -m nrc [overrides]`` (or the ``nrc`` console script).
 
 Loads and validates the scene, renders with the configured renderer and writes, into Hydra's run
-directory: ``image.exr`` (linear float32 RGB), ``preview.png`` (tone-mapped) and ``metrics.json``.
-Configuration errors print one message naming the key and exit with status 2 (no traceback).
+directory: ``image.exr`` (linear float32 RGB, alpha = the medium's opacity along each pixel's camera ray,
+header metadata), ``preview.png`` (tone-mapped) and ``metrics.json``.
+Configuration errors print one message naming the key and exit with status 2 (no traceback). Settings that
+are ignored in this configuration print one warning each. NaN/Inf pixels are kept in ``image.exr``, shown
+magenta in the preview, counted in ``metrics.json`` (``nonfinite_pixels``) and warned about.
+A SIGINT or SIGTERM during ``renderer=nrc`` finishes the current frame, writes the checkpoint and the
+outputs of the frames done, prints the command that resumes, and exits with 130 (SIGINT) or 143 (SIGTERM).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -17,22 +23,58 @@ from typing import Any
 import hydra
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from nrc.config import CONF_DIR, absolute_paths, resolve_device
+from nrc.config import CONF_DIR, absolute_paths, code_version, resolve_device
 from nrc.errors import NRCError
 
 log = logging.getLogger("nrc")
 
 
+def ignored_settings(cfg: DictConfig) -> list[str]:
+    """Warnings for settings that have no effect in this configuration (conflicts are errors of the typed
+    settings, e.g. ``renderer.accumulate`` with an animation)."""
+    warnings = []
+    name = cfg.renderer.get("name")
+    if name != "nrc" and cfg.get("frames", 30) != 30:
+        warnings.append(f"frames={cfg.frames} is ignored by renderer={name} (it renders one image; frames are "
+                        "for renderer=nrc)")
+    vol = cfg.scene.get("volume")
+    if OmegaConf.is_dict(vol) and vol.get("source") == "procedural" and vol.get("path"):
+        warnings.append(f"scene.volume.path={vol.path} is ignored with scene.volume.source=procedural (set "
+                        "scene.volume.source=vdb or npz to read it)")
+    lights = cfg.scene.get("lights")
+    if OmegaConf.is_list(lights) and len(lights) == 0 and name != "preview":
+        warnings.append("scene.lights is empty (scene=base has none): the image will be black; pick a preset "
+                        "such as scene=sun")
+    return warnings
+
+
+def _write(what: str, path: Path, write: Any) -> None:
+    try:
+        write()
+    except (OSError, ValueError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc).splitlines()[0]
+        raise NRCError(f"cannot write {what} {path}: {reason}") from None
+
+
 def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     """Render the configured scene and write the outputs into ``out_dir``; returns the metrics."""
+    from nrc.evaluation.reference import config_hash, medium_alpha
     from nrc.io import write_exr, write_png
     from nrc.io.png import DisplaySettings
     from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
     display = DisplaySettings.from_config(cfg)
+    for warning in ignored_settings(cfg):
+        log.warning(warning)
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise NRCError(f"the run directory {out_dir} is a file, not a directory")
+    for name in ("image.exr", "preview.png", "metrics.json"):
+        if (out_dir / name).is_dir():
+            raise NRCError(f"cannot write {out_dir / name}: a directory of that name is in the way")
     t0 = time.perf_counter()
     device = resolve_device(cfg.device)
     scene = load_scene(cfg.scene, device)
@@ -41,30 +83,111 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     if hasattr(renderer, "attach_output"):  # renderers with logs and checkpoints (nrc) write them to the run dir
         renderer.attach_output(out_dir)
     result = renderer.render(progress=True)
-    image = np.nan_to_num(result.image, nan=0.0, posinf=0.0, neginf=0.0)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_exr(out_dir / "image.exr", image)
+    image = np.asarray(result.image, dtype=np.float32)
+    nonfinite = int((~np.isfinite(image)).any(axis=-1).sum())
+    if nonfinite:
+        log.warning("%d pixels are NaN/Inf: kept in image.exr, magenta in preview.png", nonfinite)
     exposure = display.exposure_for(image)
-    write_png(out_dir / "preview.png", image, exposure, display.tonemap)
     metrics = {"time_scene_load_s": t_load, **result.metrics, "device": str(device),
-               "preview": {"tonemap": display.tonemap, "exposure": exposure}}
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    log.info("wrote %s (image.exr, preview.png, metrics.json)", out_dir)
+               "nonfinite_pixels": nonfinite, "preview": {"tonemap": display.tonemap, "exposure": exposure},
+               "code": code_version()}
+    attrs = {"renderer": str(cfg.renderer.name), "spp": int(scene.integrator.spp),
+             "seed": int(scene.integrator.seed), "config_hash": config_hash(cfg), "code": metrics["code"],
+             "alpha": "A channel: 1 - camera-ray transmittance through the pixel centre (the expected fraction "
+                      "of camera samples with a real collision)"}
+    if cfg.renderer.name == "nrc":
+        attrs["frames"] = int(metrics.get("frames_done", cfg.frames))
+    _write("the run directory", out_dir, lambda: out_dir.mkdir(parents=True, exist_ok=True))
+    _write("the image", out_dir / "image.exr",
+           lambda: write_exr(out_dir / "image.exr", image, attrs, medium_alpha(scene)))
+    _write("the preview", out_dir / "preview.png",
+           lambda: write_png(out_dir / "preview.png", image, exposure, display.tonemap))
+    _write("the metrics", out_dir / "metrics.json",
+           lambda: (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2)))
+    written = ["image.exr", "preview.png", "metrics.json"]
+    if metrics.get("checkpoint"):
+        written.append(f"checkpoint.pt (frame {metrics['checkpoint_frame']}, "
+                       f"{metrics['checkpoint_bytes'] / 1e6:.1f} MB)")
+    if (out_dir / "tensorboard").is_dir():
+        written.append("tensorboard/")
+    log.info("wrote %s: %s", out_dir, ", ".join(written))
     return metrics
+
+
+def resume_command(out_dir: Path) -> str:
+    """The command line that continues this run from its checkpoint."""
+    try:
+        task = list(HydraConfig.get().overrides.task)
+    except ValueError:  # not inside a Hydra job
+        task = []
+    task = [o for o in task if not o.lstrip("+~").startswith("renderer.resume=")]
+    return shlex.join([sys.executable.rsplit("/", 1)[-1], "-m", "nrc", *task,
+                       f"renderer.resume={Path(out_dir).resolve() / 'checkpoint.pt'}"])
+
+
+class _Terminated(BaseException):
+    """SIGTERM outside the NRC frame loop (which handles its own signals)."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    raise _Terminated()
 
 
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
+    import signal
+
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         absolute_paths(cfg)
-        run(cfg, Path(HydraConfig.get().runtime.output_dir))
+        metrics = run(cfg, out_dir)
     except NRCError as exc:
         print(f"nrc: error: {exc}", file=sys.stderr)
         sys.exit(2)
+    except (KeyboardInterrupt, _Terminated) as exc:
+        name, code = ("SIGINT", 130) if isinstance(exc, KeyboardInterrupt) else ("SIGTERM", 143)
+        print(f"nrc: interrupted by {name} before the outputs were written (renderer={cfg.renderer.get('name')} "
+              "renders in one pass; scripts/render_reference.py renders long images in resumable chunks)",
+              file=sys.stderr)
+        sys.exit(code)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if metrics.get("interrupted"):
+        code = {"SIGINT": 130, "SIGTERM": 143}.get(metrics["interrupted"], 1)
+        print(f"nrc: interrupted by {metrics['interrupted']} after frame {metrics['frames_done']} of "
+              f"{metrics['frames']}; resume with:\n  {resume_command(out_dir)}", file=sys.stderr)
+        sys.exit(code)
+
+
+def run_dir_problem(argv: list[str]) -> str | None:
+    """Why Hydra could not create the run (or sweep) directory named on the command line (or the default
+    ``outputs/`` under the current directory), or ``None``; checked before Hydra starts, which would otherwise
+    fail with a traceback."""
+    import os
+
+    key = "hydra.sweep.dir=" if any(a in ("-m", "--multirun") for a in argv) else "hydra.run.dir="
+    given = [a.split("=", 1)[1] for a in argv if a.startswith(key)]
+    target = Path(given[-1] if given else "outputs").expanduser()
+    target = target if target.is_absolute() else Path.cwd() / target
+    probe = target
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if probe == target and target.is_dir():
+        return None if os.access(target, os.W_OK) else f"the run directory {target} is not writable"
+    if not probe.is_dir():
+        return f"cannot create the run directory {target}: {probe} is a file"
+    if not os.access(probe, os.W_OK):
+        return f"cannot create the run directory {target}: {probe} is not writable (set {key}<a writable path>)"
+    return None
 
 
 def main() -> None:
     """Console-script entry point."""
+    problem = run_dir_problem(sys.argv[1:])
+    if problem is not None:
+        print(f"nrc: error: {problem}", file=sys.stderr)
+        sys.exit(2)
     _hydra_main()
 
 

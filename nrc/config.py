@@ -17,9 +17,18 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from omegaconf import OmegaConf
+
 from nrc.errors import ConfigError
 
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+def _conf_dir() -> str:
+    """The Hydra configs: ``nrc/conf/`` inside an installed wheel (setup.py copies them there), else the
+    checkout's ``conf/`` (editable installs and running from the repo)."""
+    packaged = Path(__file__).resolve().parent / "conf"
+    return str(packaged if (packaged / "config.yaml").is_file() else Path(__file__).resolve().parent.parent / "conf")
+
+
+CONF_DIR = _conf_dir()
 
 _REQUIRED = object()
 
@@ -155,15 +164,19 @@ def absolute_paths(cfg: Any) -> None:
     except ImportError:  # pragma: no cover - hydra-core is a dependency
         absolute = lambda p: str(Path(p).resolve())  # noqa: E731
 
-    vol = cfg.scene.volume
-    if vol.get("path"):
+    # Values of the wrong type are left alone here: the typed loaders report them, naming the key.
+    scene = cfg.get("scene")
+    vol = scene.get("volume") if OmegaConf.is_dict(scene) else None
+    if OmegaConf.is_dict(vol) and isinstance(vol.get("path"), str) and vol.get("path"):
         vol.path = absolute(vol.path)
-    for light in cfg.scene.get("lights") or []:
-        if light.get("path"):
+    lights = scene.get("lights") if OmegaConf.is_dict(scene) else None
+    for light in lights if OmegaConf.is_list(lights) else []:
+        if OmegaConf.is_dict(light) and isinstance(light.get("path"), str) and light.get("path"):
             light.path = absolute(light.path)
+    renderer = cfg.get("renderer")
     for key in ("reference", "resume"):
-        if cfg.renderer.get(key):
-            cfg.renderer[key] = absolute(cfg.renderer[key])
+        if OmegaConf.is_dict(renderer) and isinstance(renderer.get(key), str) and renderer.get(key):
+            renderer[key] = absolute(renderer[key])
 
 
 def resolve_device(name: str) -> Any:
@@ -178,3 +191,26 @@ def resolve_device(name: str) -> Any:
         return torch.device(name)
     except RuntimeError:
         raise ConfigError(f"device must be 'cpu' or 'cuda[:N]', got {name!r}") from None
+
+
+def code_version() -> str:
+    """``nrc <version> (<git rev>[+dirty])`` of the code running (``git`` only when run from a checkout)."""
+    import subprocess
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        pkg = version("nrc")
+    except PackageNotFoundError:  # pragma: no cover - running from a plain checkout
+        pkg = "unknown"
+    repo = Path(__file__).resolve().parent.parent
+    if not (repo / ".git").exists():
+        return f"nrc {pkg}"
+    try:
+        rev = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True,
+                             text=True, check=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, check=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return f"nrc {pkg}"
+    return f"nrc {pkg} ({rev}{'+dirty' if dirty else ''})"
+

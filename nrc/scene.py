@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from nrc.errors import ConfigError
+from nrc.errors import ConfigError, NRCError
 from nrc.camera import Camera
 from nrc.transport.lights import DirectionalLight, EnvironmentLight, Light, PointLight
 from nrc.volume import DensityGrid, procedural_cloud, read_npz, read_vdb
@@ -166,13 +166,21 @@ def _light(spec: Mapping[str, Any], index: int, device: torch.device) -> Light:
         has_rad = spec.get("radiance") is not None
         has_path = spec.get("path") is not None
         if has_rad == has_path:
-            raise ConfigError(f"{w}: an environment light needs exactly one of 'radiance' or 'path'")
+            override = w.replace("[", ".").replace("]", "")
+            raise ConfigError(f"{w}: an environment light needs exactly one of 'radiance' (a uniform sky) or 'path' "
+                              f"(a lat-long EXR)" + (f"; to use the file, also set {override}.radiance=null"
+                                                     if has_rad else ""))
         if has_rad:
             radiance = _vec3(spec["radiance"], f"{w}.radiance", nonnegative=True)
             return EnvironmentLight(_tensor(radiance, device), None, scale)
         from nrc.io.exr import read_exr
 
-        img, _ = read_exr(_existing_file(spec["path"], f"{w}.path"))
+        try:
+            img, _ = read_exr(_existing_file(spec["path"], f"{w}.path"))
+        except ConfigError:
+            raise
+        except NRCError as exc:
+            raise ConfigError(f"{w}.path: {exc}") from None
         if not np.isfinite(img).all() or (img < 0).any():
             raise ConfigError(f"{w}.path: environment image must be finite and non-negative")
         return EnvironmentLight(None, _tensor(img, device), scale)

@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -111,3 +112,48 @@ def test_multirun_sweeps_with_the_joblib_launcher(tmp_path):
     for job in ("0", "1"):
         metrics = json.loads((tmp_path / job / "metrics.json").read_text())
         assert metrics["renderer"] == "nrc" and len(metrics["loss_per_frame"]) == 1
+
+
+@pytest.mark.slow
+def test_a_wheel_install_runs_outside_the_checkout(tmp_path):
+    """`pip install` of the built wheel into a fresh venv runs `python -m nrc` from a directory with no conf/
+    beside it. The venv reuses this interpreter's packages (torch, hydra, ...) through a .pth path entry, which
+    adds the directory without running its .pth files, so an editable install of nrc there stays invisible."""
+    import sysconfig
+    import venv
+
+    wheel_dir = tmp_path / "dist"
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps", "--no-build-isolation",
+                            "-w", str(wheel_dir), "-q"], capture_output=True, text=True, timeout=600)
+    assert build.returncode == 0, build.stderr
+    (wheel,) = wheel_dir.glob("nrc-*.whl")
+    env_dir = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=True).create(env_dir)
+    py = env_dir / "bin" / "python"
+    site = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                          capture_output=True, text=True, check=True).stdout.strip()
+    (Path(site) / "host_packages.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    inst = subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], capture_output=True,
+                          text=True, timeout=600)
+    assert inst.returncode == 0, inst.stderr
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    proc = subprocess.run([str(py), "-m", "nrc", "renderer=preview", "hydra.run.dir=out", *TINY], cwd=work,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert (work / "out" / "image.exr").is_file()
+    where = subprocess.run([str(py), "-c", "import nrc.config as c; print(c.CONF_DIR)"], cwd=work,
+                           capture_output=True, text=True, timeout=60).stdout.strip()
+    assert str(env_dir) in where  # the packaged configs, not the checkout's
+
+
+def test_multirun_with_the_submitit_launcher(tmp_path):
+    """`hydra/launcher=submitit_local` (the `cluster` extra) runs the real submitit executor: two jobs."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    cmd = [sys.executable, "-m", "nrc", "-m", "hydra/launcher=submitit_local", f"hydra.sweep.dir={tmp_path}",
+           "hydra.launcher.timeout_min=5", "renderer=preview", *TINY, "scene.camera.width=8,12"]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    for job, width in (("0", 8), ("1", 12)):
+        img, _ = read_exr(tmp_path / job / "image.exr")
+        assert img.shape == (8, width, 3)

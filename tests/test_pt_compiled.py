@@ -234,7 +234,7 @@ def test_latlong_environment_falls_back_with_a_reason(tmp_path):
     from nrc.io import write_exr
 
     write_exr(tmp_path / "env.exr", np.ones((4, 8, 3), dtype=np.float32))
-    pt, _ = make(["scene=sky", "scene.lights.0.radiance=null", f"+scene.lights.0.path={tmp_path / 'env.exr'}",
+    pt, _ = make(["scene=sky", "scene.lights.0.radiance=null", f"scene.lights.0.path={tmp_path / 'env.exr'}",
                   "renderer.backend=compiled", "scene.camera.width=4", "scene.camera.height=2",
                   "scene.integrator.spp=1"])
     r = pt.render()

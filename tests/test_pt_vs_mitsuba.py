@@ -37,7 +37,7 @@ def test_pt_matches_mitsuba_under_a_latlong_environment(tmp_path):
                                        0.5 + 0.4 * (1 - v)[:, None] + 0 * u[None]), -1).astype(np.float32)
     sky[2:4, 20:22] = 60.0  # a small bright sun up high, about a quarter turn from -z towards +x
     write_exr(tmp_path / "env.exr", sky)
-    compare_with_mitsuba(["scene.lights.0.radiance=null", f"+scene.lights.0.path={tmp_path / 'env.exr'}"], "sky")
+    compare_with_mitsuba(["scene.lights.0.radiance=null", f"scene.lights.0.path={tmp_path / 'env.exr'}"], "sky")
 
 
 def test_pt_matches_mitsuba_on_the_default_scene():

@@ -120,3 +120,21 @@ def test_environment_needs_radiance_or_path():
     cfg = compose(["scene=sky", *SMALL, "scene.lights.0.radiance=null"])
     with pytest.raises(ConfigError, match=r"scene.lights\[0\]"):
         load_scene(cfg.scene)
+
+
+def test_latlong_environment_from_the_command_line(tmp_path):
+    """The README's example: a lat-long EXR sky with `scene=sky scene.lights.0.radiance=null
+    scene.lights.0.path=...`; a non-EXR file or both keys are one clear error naming the key."""
+    from nrc.io import write_exr
+
+    write_exr(tmp_path / "sky.exr", np.full((8, 16, 3), 0.5, np.float32))
+    scene = load_scene(compose(["scene=sky", *SMALL, "scene.lights.0.radiance=null",
+                                f"scene.lights.0.path={tmp_path / 'sky.exr'}"]).scene)
+    (env,) = scene.lights
+    assert env.image is not None and env.image.shape == (8, 16, 3)
+    (tmp_path / "sky.png").write_bytes(b"\x89PNG\r\n\x1a\n not an exr")
+    with pytest.raises(ConfigError, match=r"scene\.lights\[0\]\.path: .*not a readable EXR"):
+        load_scene(compose(["scene=sky", *SMALL, "scene.lights.0.radiance=null",
+                            f"scene.lights.0.path={tmp_path / 'sky.png'}"]).scene)
+    with pytest.raises(ConfigError, match=r"also set scene\.lights\.0\.radiance=null"):
+        load_scene(compose(["scene=sky", *SMALL, f"scene.lights.0.path={tmp_path / 'sky.exr'}"]).scene)

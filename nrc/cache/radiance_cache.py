@@ -63,6 +63,7 @@ class RadianceCache:
         self.device = next(network.parameters()).device
         self.n_steps = 0
         self.n_skipped_steps = 0
+        self.n_consecutive_skipped = 0  # skipped steps since the last good one
 
     @property
     def n_parameters(self) -> int:
@@ -118,7 +119,9 @@ class RadianceCache:
         if not bool(torch.isfinite(torch.stack(sums)).all()):
             self.optimizer.zero_grad(set_to_none=True)
             self.n_skipped_steps += 1
+            self.n_consecutive_skipped += 1
             return float(loss.detach())
+        self.n_consecutive_skipped = 0
         self.optimizer.step()
         self.ema.update()
         self.n_steps += 1

@@ -115,13 +115,7 @@ def medium_alpha(scene: Scene, chunk: int = 1 << 16) -> np.ndarray:
 
 def write_reference_exr(path: str | Path, image: np.ndarray, alpha: np.ndarray | None, attrs: dict) -> None:
     """Write RGB (+ ``A`` = ``alpha`` when given) float32 with header ``attrs`` (ZIP compression)."""
-    if alpha is None:
-        write_exr(path, image, attrs)
-        return
-    rgba = np.concatenate([np.asarray(image, np.float32), np.asarray(alpha, np.float32)[..., None]], axis=-1)
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **attrs}
-    with OpenEXR.File(header, {"RGBA": np.ascontiguousarray(rgba)}) as f:
-        f.write(str(path))
+    write_exr(path, image, attrs, alpha)
 
 
 def read_reference(path: str | Path) -> Reference:

@@ -55,7 +55,7 @@ import torch
 
 REPO = Path(__file__).resolve().parents[2]  # the checkout (data/references, outputs/ and git live there)
 
-from nrc.config import CONF_DIR, compose, resolve_device  # noqa: E402
+from nrc.config import CONF_DIR, code_version, compose, resolve_device  # noqa: E402
 from nrc.evaluation.metrics import mean_relative_bias, medium_mask, mse, rel_mse, relative_variance  # noqa: E402
 from nrc.evaluation.reference import REF_SEED, default_reference_path, read_reference, render_reference  # noqa: E402
 from nrc.scene import load_scene  # noqa: E402
@@ -614,7 +614,7 @@ def main(argv: list[str] | None = None) -> int:
             "ref_spp": ref.attrs.get("spp"), "rel_mse_floor": ref.rel_mse_floor,
             "rel_mse_floor_medium": ref.rel_mse_floor_medium, "medium_pixels": int(mask.sum()),
             "baseline": baseline, "skipped": skipped, "nrc_overrides": args.nrc_overrides,
-            "git": _git_rev(), "argv": sys.argv[1:] if argv is None else argv,
+            "git": code_version(), "argv": sys.argv[1:] if argv is None else argv,
             "machine": f"{platform.machine()}, {_cpu_count()} cores, torch {torch.__version__} "
                        f"({torch.get_num_threads()} threads)",
             "wall_time_s": time.perf_counter() - start,
@@ -666,19 +666,6 @@ def _renderer_of(overrides: list[str]) -> str:
         if o.startswith("renderer="):
             return o.split("=", 1)[1]
     return "pt"
-
-
-def _git_rev() -> str:
-    import subprocess
-
-    try:
-        rev = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
-                             text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, check=True).stdout.strip()
-        return rev + ("+dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def _cpu_count() -> int:

@@ -20,14 +20,22 @@ _STANDARD_KEYS = {
 }
 
 
-def write_exr(path: str | Path, rgb: np.ndarray, attributes: dict[str, Any] | None = None) -> None:
-    """Write an ``(H, W, 3)`` float32 linear RGB image (ZIP compression) with optional header attributes."""
+def write_exr(path: str | Path, rgb: np.ndarray, attributes: dict[str, Any] | None = None,
+              alpha: np.ndarray | None = None) -> None:
+    """Write an ``(H, W, 3)`` float32 linear RGB image (ZIP compression) with optional header attributes and
+    an optional ``(H, W)`` alpha channel ``A``."""
     rgb = np.ascontiguousarray(np.asarray(rgb, dtype=np.float32))
     if rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"write_exr expects an (H, W, 3) image, got shape {rgb.shape}")
     header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update(attributes or {})
-    with OpenEXR.File(header, {"RGB": rgb}) as f:
+    channels = {"RGB": rgb}
+    if alpha is not None:
+        alpha = np.asarray(alpha, dtype=np.float32)
+        if alpha.shape != rgb.shape[:2]:
+            raise ValueError(f"write_exr: alpha must be {rgb.shape[:2]}, got {alpha.shape}")
+        channels = {"RGBA": np.ascontiguousarray(np.concatenate([rgb, alpha[..., None]], axis=-1))}
+    with OpenEXR.File(header, channels) as f:
         f.write(str(path))
 
 

@@ -36,8 +36,10 @@ class FrameLog:
             for i, loss in enumerate(losses):
                 self.writer.add_scalar("loss/step", loss, first_step + i)
 
-    def frame(self, frame: int, stats: dict[str, Any], images: dict[str, np.ndarray]) -> None:
-        """Record the scalars of ``stats`` (per-frame lists in :attr:`history`) and log them."""
+    def frame(self, frame: int, stats: dict[str, Any], images: dict[str, np.ndarray], force_images: bool = False
+              ) -> None:
+        """Record the scalars of ``stats`` (per-frame lists in :attr:`history`) and log them; the images every
+        ``image_every`` frames and when ``force_images`` (the final frame)."""
         for key, value in stats.items():
             self.history.setdefault(key, []).append(value)
         if self.writer is None:
@@ -47,7 +49,7 @@ class FrameLog:
                 self.writer.add_scalar(f"time/{key[5:-2]}", value, frame)
             elif key in ("loss", "rel_mse", "mse") and value is not None:
                 self.writer.add_scalar("loss/frame" if key == "loss" else f"error/{key}", value, frame)
-        if self.image_every and frame % self.image_every == 0:
+        if (self.image_every and frame % self.image_every == 0) or force_images:
             for name, img in images.items():
                 if name not in self.exposure:
                     self.exposure[name] = self.display.exposure_for(img)

@@ -14,15 +14,25 @@ Each frame (``frames`` in the root config):
 
 The output is the last frame's image, or the mean over frames with ``renderer.accumulate``. With a
 ``renderer.reference`` EXR every frame's relative MSE is logged. A checkpoint (cache weights, Adam, EMA,
-ring buffer, accumulation, history) is written to ``checkpoint.pt`` in the run directory every
-``checkpoint_every`` frames and at the end; ``renderer.resume=<path>`` continues from one, and because
-every frame draws from its own generator seeded by ``(seed, frame)`` a resumed run continues the loss
-curve exactly as the uninterrupted run would have.
+ring buffer, accumulation, history; :mod:`nrc.render.radiance_caching.checkpoint`) is written to
+``checkpoint.pt`` in the run directory at the end, after a SIGINT or SIGTERM (the current frame is finished
+first; a second signal stops at once), and every 60 s of rendering (``checkpoint_every: auto``) or every N
+frames; ``renderer.resume=<path>`` continues from one of the same configuration, and because every frame
+draws from its own generator seeded by ``(seed, frame)`` a resumed run continues the loss curve and the
+image exactly as the uninterrupted run would have.
+
+Non-finite values are counted, never hidden: cache predictions that are NaN/Inf (treated as 0 radiance) per
+frame in ``nonfinite_predictions``; training steps with a non-finite loss or gradient are skipped before
+Adam and the EMA (``cache_skipped_steps``); :data:`MAX_NONFINITE_STEPS` of them in a row stop the run with
+a message (the checkpoint on disk stays the last good one).
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -36,9 +46,11 @@ from torch import Tensor
 from tqdm import tqdm
 
 from nrc.cache.radiance_cache import build_radiance_cache
-from nrc.errors import ConfigError
+from nrc.errors import ConfigError, NRCError
 from nrc.io.png import DisplaySettings
 from nrc.render.radiance_caching.batch_filter import make_batch_filter
+from nrc.render.radiance_caching.checkpoint import (CheckpointError, check_config, load_checkpoint, plain,
+                                                    save_checkpoint)
 from nrc.camera import Camera
 from nrc.render.radiance_caching.frame_log import FrameLog
 from nrc.render.radiance_caching.inference_filter import filtered_query
@@ -62,6 +74,44 @@ def rotation_y(degrees: float, device: torch.device) -> Tensor:
     a = math.radians(degrees)
     c, s = math.cos(a), math.sin(a)
     return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float32, device=device)
+
+
+MAX_NONFINITE_STEPS = 8  # consecutive skipped (non-finite) training steps that stop a run
+log = logging.getLogger("nrc")
+
+
+class _StopOnSignal:
+    """SIGINT / SIGTERM ask the frame loop to stop after the current frame (``signal`` is set); a second one
+    restores the default handlers and re-raises, stopping at once. Inert outside the main thread."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+        self._old: dict[int, Any] = {}
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.signal is not None:
+            self._restore()
+            signal.raise_signal(signum)
+            return
+        self.signal = signum
+        log.warning("%s: finishing the current frame, then writing the checkpoint and the outputs (again to "
+                    "stop at once)", signal.Signals(signum).name)
+
+    def _restore(self) -> None:
+        for s, old in self._old.items():
+            signal.signal(s, old)
+        self._old = {}
+
+    def __enter__(self) -> _StopOnSignal:
+        if threading.current_thread() is threading.main_thread():
+            for s in self.SIGNALS:
+                self._old[s] = signal.signal(s, self._handle)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._restore()
 
 
 class NRCRenderer:
@@ -104,6 +154,10 @@ class NRCRenderer:
         self.reference = self._load_reference(st.reference)
         self.out_dir: Path | None = None
         self.config_yaml = OmegaConf.to_yaml(cfg) if isinstance(cfg, DictConfig) else ""
+        self.checkpoint_path: Path | None = None
+        self.checkpoint_frame, self.checkpoint_bytes = 0, 0
+        self.interrupted: int | None = None
+        self._skipped_seen = 0
 
     def attach_output(self, out_dir: Path) -> None:
         """The run directory: TensorBoard logs (``tensorboard/``) and ``checkpoint.pt`` go there."""
@@ -167,13 +221,16 @@ class NRCRenderer:
                                               ps.n_render + ps.n_train, st.inference_batch, query_from, ps.n_render)
         # Radiance is never negative: a linear output that dips below 0 (early frames) would otherwise
         # darken the image and, through self-training, feed negative targets back into the cache.
+        nonfinite = int((~torch.isfinite(values)).any(dim=-1).sum()) if values.numel() else 0
         values = torch.nan_to_num(values, nan=0.0, posinf=0.0).clamp(min=0.0)
         acc = trace.acc
         acc.index_add_(0, trace.query_dest, trace.query_w * values)
         n_pix = trace.n_pixels
         image = (acc[:n_pix] / ps.spp).reshape(camera.height, camera.width, 3)
         if not bool(torch.isfinite(image).all()):
-            raise RuntimeError(f"frame {frame}: the NRC image has non-finite pixels")
+            bad = int((~torch.isfinite(image)).any(dim=-1).sum())
+            raise NRCError(f"frame {frame}: {bad} pixels of the NRC image are NaN/Inf (the path tracing part "
+                           "diverged; the image is not written)")
         t2 = time.perf_counter()
 
         V = tr.records_per_path
@@ -192,27 +249,59 @@ class NRCRenderer:
 
         stats: dict[str, Any] = {
             "time_trace_s": t1 - t0, "time_infer_s": t2 - t1, "time_train_s": t3 - t2, "time_frame_s": t3 - t0,
-            "loss": float(np.mean(losses)) if losses else None,
+            "loss": float(np.mean(losses)) if losses else None, "nonfinite_predictions": nonfinite,
             "train_batches": len(batches), "train_records_valid": int(valid.sum()),
             "training_pixels_scattering": int(trace.scattered.sum()),
             **{f"time_{k}_s": v for k, v in trace.timers.items()}, **trace.counts, **infer_counts,
         }
         return image, stats, losses
 
+    def _check_training(self, frame: int, stats: dict[str, Any]) -> None:
+        """Warn about non-finite predictions and skipped steps; stop a cache that keeps diverging."""
+        if stats.get("nonfinite_predictions"):
+            log.warning("frame %d: %d cache predictions were NaN/Inf (counted as 0 radiance)", frame,
+                        stats["nonfinite_predictions"])
+        skipped = getattr(self.cache, "n_skipped_steps", 0)
+        if skipped > self._skipped_seen:
+            log.warning("frame %d: %d training steps skipped (non-finite loss or gradient; weights untouched)",
+                        frame, skipped - self._skipped_seen)
+            self._skipped_seen = skipped
+        if getattr(self.cache, "n_consecutive_skipped", 0) >= MAX_NONFINITE_STEPS:
+            kept = (f"the last good checkpoint is {self.checkpoint_path} (frame {self.checkpoint_frame})"
+                    if self.checkpoint_path is not None else "no checkpoint was written")
+            raise NRCError(f"frame {frame}: the radiance cache's training loss was NaN/Inf for "
+                           f"{MAX_NONFINITE_STEPS} steps in a row; stopped ({kept})")
+
     # ------------------------------------------------------------------ checkpoints
     def _checkpoint(self, path: Path, frame: int, accum: Tensor, n_accum: int, log: FrameLog) -> None:
-        torch.save({"frame": frame, "cache": self.cache.state_dict(), "ring": self.ring.state_dict(),
-                    "accum": accum.cpu(), "n_accum": n_accum, "history": log.history,
-                    "config": self.config_yaml}, path)
+        try:
+            self.checkpoint_bytes = save_checkpoint(path, {
+                "frame": frame, "cache": self.cache.state_dict(), "ring": self.ring.state_dict(),
+                "accum": accum.cpu(), "n_accum": n_accum, "history": plain(log.history),
+                "config": self.config_yaml})
+        except OSError as exc:
+            raise NRCError(f"cannot write the checkpoint {path}: {exc.strerror or exc}") from None
+        self.checkpoint_path, self.checkpoint_frame = path, frame
 
     def _resume(self, path: str, log: FrameLog) -> tuple[int, Tensor, int]:
-        if not Path(path).is_file():
-            raise ConfigError(f"renderer.resume: no such checkpoint {path}")
-        state = torch.load(path, map_location=self.device, weights_only=False)
-        self.cache.load_state_dict(state["cache"])
-        self.ring.load_state_dict(state["ring"])
+        state = load_checkpoint(path, self.device)
+        if self.config_yaml:
+            check_config(path, state["config"], OmegaConf.create(self.config_yaml))
+        try:
+            self.cache.load_state_dict(state["cache"])
+            self.ring.load_state_dict(state["ring"])
+        except (RuntimeError, KeyError, ValueError) as exc:
+            if isinstance(exc, ConfigError):
+                raise
+            raise CheckpointError(f"renderer.resume: {path} does not fit this cache "
+                                  f"({str(exc).splitlines()[0]})") from None
+        accum = state["accum"].to(self.device)
+        cam = self.scene.camera
+        if tuple(accum.shape) != (cam.height, cam.width, 3):
+            raise CheckpointError(f"renderer.resume: {path} holds a {accum.shape[1]}x{accum.shape[0]} image, the "
+                                  f"camera renders {cam.width}x{cam.height}")
         log.load(state["history"])
-        return int(state["frame"]), state["accum"].to(self.device), int(state["n_accum"])
+        return int(state["frame"]), accum, int(state["n_accum"])
 
     # ------------------------------------------------------------------ the frame loop
     def render(self, progress: bool = False, on_frame: FrameCallback | None = None) -> RenderResult:
@@ -228,31 +317,43 @@ class NRCRenderer:
                 raise ConfigError(f"renderer.resume: the checkpoint is at frame {start}, frames={self.frames}")
         step = sum(log.history.get("train_batches", []))
         output = accum
-        t_start = time.perf_counter()
-        for frame in tqdm(range(start, self.frames), disable=not progress, desc="nrc", unit="frame", leave=False):
-            image, stats, losses = self.render_frame(frame)
-            if st.accumulate:
-                accum += image
-                n_accum += 1
-                output = accum / n_accum
-            else:
-                output = image
-            out_np = output.cpu().numpy()
-            if self.reference is not None:
-                from nrc.evaluation.metrics import mse, rel_mse
+        t_start = t_saved = time.perf_counter()
+        done = start
+        self.interrupted = None
+        with _StopOnSignal() as stop:
+            for frame in tqdm(range(start, self.frames), disable=not progress, desc="nrc", unit="frame", leave=False):
+                image, stats, losses = self.render_frame(frame)
+                self._check_training(frame, stats)
+                if st.accumulate:
+                    accum += image
+                    n_accum += 1
+                    output = accum / n_accum
+                else:
+                    output = image
+                out_np = output.cpu().numpy()
+                if self.reference is not None:
+                    from nrc.evaluation.metrics import mse, rel_mse
 
-                stats["rel_mse"] = rel_mse(out_np, self.reference)
-                stats["mse"] = mse(out_np, self.reference)
-            log.steps(step, losses)
-            step += len(losses)
-            log.frame(frame, stats, {"frame": image.cpu().numpy(), "output": out_np})
-            if on_frame is not None:
-                on_frame(frame, image.cpu().numpy(), out_np, stats)
-            if self.out_dir is not None and st.checkpoint_every and (frame + 1) % st.checkpoint_every == 0:
-                self._checkpoint(self.out_dir / "checkpoint.pt", frame + 1, accum, n_accum, log)
+                    stats["rel_mse"] = rel_mse(out_np, self.reference)
+                    stats["mse"] = mse(out_np, self.reference)
+                log.steps(step, losses)
+                step += len(losses)
+                last = frame == self.frames - 1 or stop.signal is not None  # the final frame is always logged
+                log.frame(frame, stats, {"frame": image.cpu().numpy(), "output": out_np}, force_images=last)
+                if on_frame is not None:
+                    on_frame(frame, image.cpu().numpy(), out_np, stats)
+                done = frame + 1
+                if stop.signal is not None:
+                    self.interrupted = stop.signal
+                    break
+                due = (st.checkpoint_every and done % st.checkpoint_every == 0) or (
+                    st.checkpoint_seconds is not None and time.perf_counter() - t_saved >= st.checkpoint_seconds)
+                if self.out_dir is not None and due and done < self.frames:
+                    self._checkpoint(self.out_dir / "checkpoint.pt", done, accum, n_accum, log)
+                    t_saved = time.perf_counter()
         elapsed = time.perf_counter() - t_start
-        if self.out_dir is not None:
-            self._checkpoint(self.out_dir / "checkpoint.pt", self.frames, accum, n_accum, log)
+        if self.out_dir is not None and done > start:
+            self._checkpoint(self.out_dir / "checkpoint.pt", done, accum, n_accum, log)
         log.close()
         h = log.history
         metrics: dict[str, Any] = {
@@ -264,6 +365,10 @@ class NRCRenderer:
             "cache_parameters": self.cache.n_parameters if hasattr(self.cache, "n_parameters") else None,
             "cache_steps": getattr(self.cache, "n_steps", None),
             "cache_skipped_steps": getattr(self.cache, "n_skipped_steps", None),
+            "nonfinite_predictions": int(sum(h.get("nonfinite_predictions", []))),
+            "frames_done": done, "interrupted": signal.Signals(self.interrupted).name if self.interrupted else None,
+            "checkpoint": str(self.checkpoint_path) if self.checkpoint_path else None,
+            "checkpoint_frame": self.checkpoint_frame, "checkpoint_bytes": self.checkpoint_bytes,
             "frame_times_s": h.get("time_frame_s", []), "time_trace_s": h.get("time_trace_s", []),
             "time_infer_s": h.get("time_infer_s", []), "time_train_s": h.get("time_train_s", []),
             "loss_per_frame": h.get("loss", []), "history": h,

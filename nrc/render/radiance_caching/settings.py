@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from nrc.config import ConfigReader
+from nrc.errors import ConfigError
 from nrc.render.radiance_caching.termination import Termination
 
 ANIMATIONS = ("none", "orbit", "sun")
@@ -50,6 +51,7 @@ class NRCSettings:
     tensorboard: bool
     image_every: int
     checkpoint_every: int
+    checkpoint_seconds: float | None
     reference: str | None
     resume: str | None
 
@@ -82,11 +84,28 @@ class NRCSettings:
             degrees_per_frame=anim.get_float("degrees_per_frame", 2.0),
             tensorboard=log.get_bool("tensorboard", True),
             image_every=log.get_int("image_every", 10, lo=0),
-            checkpoint_every=cfg.get_int("checkpoint_every", 0, lo=0),
+            **_checkpoint_cadence(cfg),
             reference=cfg.get_optional_str("reference"),
             resume=cfg.get_optional_str("resume"),
         )
         for block in (tr, inf, anim, log, cfg):
             block.finish()
+        if settings.accumulate and settings.animate != "none":
+            raise ConfigError(f"renderer.accumulate=true averages the frames of a static scene; it cannot be used "
+                              f"with renderer.animate.mode={settings.animate}")
         return settings
+
+
+CHECKPOINT_SECONDS = 60.0  # checkpoint_every: auto writes at least this often while rendering
+
+
+def _checkpoint_cadence(cfg: ConfigReader) -> dict[str, Any]:
+    """``checkpoint_every``: ``auto`` (at the end, on SIGINT/SIGTERM and every 60 s of rendering) or a frame
+    count N >= 0 (also every N frames; 0: at the end and on a signal only)."""
+    value = cfg.get_raw("checkpoint_every", "auto")
+    if value == "auto":
+        return {"checkpoint_every": 0, "checkpoint_seconds": CHECKPOINT_SECONDS}
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ConfigError(f"renderer.checkpoint_every must be auto or an integer >= 0, got {value!r}")
+    return {"checkpoint_every": value, "checkpoint_seconds": None}
 
