@@ -2,7 +2,8 @@
 
 Loads and validates the scene, renders with the configured renderer and writes, into Hydra's run
 directory: ``image.exr`` (linear float32 RGB, alpha = the medium's opacity along each pixel's camera ray,
-header metadata), ``preview.png`` (tone-mapped) and ``metrics.json``.
+header metadata), ``preview.png`` (tone-mapped) and ``metrics.json``; with ``denoise=oidn`` also
+``image_denoised.exr`` and ``preview_denoised.png`` (:mod:`nrc.denoise`).
 Configuration errors print one message naming the key and exit with status 2 (no traceback). Settings that
 are ignored in this configuration print one warning each. NaN/Inf pixels are kept in ``image.exr``, shown
 magenta in the preview, counted in ``metrics.json`` (``nonfinite_pixels``) and warned about.
@@ -66,7 +67,10 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
+    from nrc.denoise import denoise, denoiser_from_config, oidn_version
+
     display = DisplaySettings.from_config(cfg)
+    denoiser = denoiser_from_config(cfg)
     for warning in ignored_settings(cfg):
         log.warning(warning)
     out_dir = Path(out_dir)
@@ -105,6 +109,19 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     _write("the metrics", out_dir / "metrics.json",
            lambda: (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2)))
     written = ["image.exr", "preview.png", "metrics.json"]
+    if denoiser == "oidn":
+        t0 = time.perf_counter()
+        denoised = denoise(image)
+        metrics["time_denoise_s"] = time.perf_counter() - t0
+        metrics["denoise"] = oidn_version()
+        _write("the denoised image", out_dir / "image_denoised.exr",
+               lambda: write_exr(out_dir / "image_denoised.exr", denoised, {**attrs, "denoiser": metrics["denoise"]},
+                                 medium_alpha(scene)))
+        _write("the denoised preview", out_dir / "preview_denoised.png",
+               lambda: write_png(out_dir / "preview_denoised.png", denoised, exposure, display.tonemap))
+        _write("the metrics", out_dir / "metrics.json",
+               lambda: (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2)))
+        written += ["image_denoised.exr", "preview_denoised.png"]
     if metrics.get("checkpoint"):
         written.append(f"checkpoint.pt (frame {metrics['checkpoint_frame']}, "
                        f"{metrics['checkpoint_bytes'] / 1e6:.1f} MB)")

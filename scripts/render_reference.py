@@ -1,7 +1,8 @@
 """Render a converged ``pt`` reference in resumable chunks (see :mod:`nrc.evaluation.reference`).
 
 Hydra overrides select the scene as for ``python -m nrc``; ``scene.integrator.spp`` is the total sample
-count and ``scene.integrator.seed`` the base seed (chunk ``i`` uses ``seed + i``). A killed run resumes
+count and ``scene.integrator.seed`` the base seed, moved into the reference seed stream (>= 1e6, disjoint from
+every render's seeds: chunk ``i`` of seed ``s`` uses ``1e6 + s * 1e4 + i``). A killed run resumes
 from ``<out>.ckpt.npz`` when started again with the same arguments.
 
 Usage::

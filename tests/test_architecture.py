@@ -10,7 +10,7 @@ from conftest import REPO
 # lower number = lower layer; a module may import its own layer and the ones below
 LAYERS = {
     "nrc.errors": 0, "nrc.config": 0,
-    "nrc.io": 1, "nrc.volume": 1, "nrc.camera": 1,
+    "nrc.io": 1, "nrc.volume": 1, "nrc.camera": 1, "nrc.denoise": 1,
     "nrc.transport": 2, "nrc.scene": 2,
     "nrc.cache": 3,
     "nrc.render": 4,

@@ -115,3 +115,34 @@ def test_error_report_is_json_and_consistent():
     assert rep["all"]["rel_mse"] == pytest.approx(np.mean([rel_mse(x, ref) for x in xs]))
     single = error_report(xs[0], ref)
     assert single["renders"] == 1 and single["all"]["relative_variance"] is None and single["medium"] is None
+
+
+def test_normalised_rel_mse_does_not_forgive_a_dark_image():
+    """A uniformly 35 % too dark image of a dim scene (reference 0.1): plain relMSE is tiny because of its
+    +0.01, the normalised one (reference mean luminance 1) is not."""
+    from nrc.evaluation.metrics import mean_ratio, normalised_rel_mse, reference_scale
+
+    ref = np.full((4, 6, 3), 0.1)
+    dark = 0.65 * ref
+    assert rel_mse(dark, ref) == pytest.approx(0.035**2 / (0.01 + 0.01))
+    assert reference_scale(ref) == pytest.approx(0.1)
+    assert normalised_rel_mse(dark, ref) == pytest.approx(0.35**2 / (1.0 + 0.01))
+    assert mean_ratio(dark, ref) == pytest.approx(0.65)
+    mask = np.zeros((4, 6), bool)
+    mask[:2] = True
+    ref2 = ref.copy()
+    ref2[2:] = 0.0  # sky pixels: the scale comes from the medium pixels only
+    assert reference_scale(ref2, mask) == pytest.approx(0.1)
+    assert normalised_rel_mse(0.65 * ref2, ref2, mask, mask) == pytest.approx(0.35**2 / 1.01)
+
+
+def test_hdr_flip_on_known_pairs():
+    pytest.importorskip("flip_evaluator")
+    from nrc.evaluation.metrics import hdr_flip
+
+    rng = np.random.default_rng(1)
+    ref = rng.uniform(0.2, 1.0, size=(32, 32, 3)).astype(np.float32)
+    assert hdr_flip(ref, ref) == pytest.approx(0.0, abs=1e-6)
+    small = hdr_flip(ref * 1.05, ref)
+    large = hdr_flip(ref * 0.5, ref)
+    assert 0.0 < small < large < 1.0

@@ -11,10 +11,15 @@ from nrc.io import read_exr
 from nrc.evaluation.metrics import medium_mask
 from nrc.render.pt import PathTracer
 from nrc.evaluation.reference import (
+    REF_SEED,
+    REF_SEEDS_PER_BASE,
+    check_independent,
     checkpoint_path,
     config_hash,
     medium_alpha,
     read_reference,
+    reference_base_seed,
+    reference_seed_range,
     render_reference,
     scene_hash,
 )
@@ -40,7 +45,7 @@ def full(tmp_path_factory) -> tuple[np.ndarray, dict]:
 
 def test_header_has_spp_and_config_hash(full):
     _, attrs, _ = full
-    assert attrs["spp"] == TOTAL and attrs["seed"] == 3
+    assert attrs["spp"] == TOTAL and attrs["seed"] == reference_base_seed(3) == REF_SEED + 3 * REF_SEEDS_PER_BASE
     assert attrs["config_hash"] == config_hash(compose(TINY))
 
 
@@ -48,7 +53,7 @@ def test_reference_is_the_mean_of_chunks_with_consecutive_seeds(full):
     cfg = compose(TINY + [f"scene.integrator.spp={CHUNK}"])
     chunks = []
     for i in range(TOTAL // CHUNK):
-        cfg.scene.integrator.seed = 3 + i
+        cfg.scene.integrator.seed = reference_base_seed(3) + i
         chunks.append(PathTracer(load_scene(cfg.scene), cfg).render().image.astype(np.float64))
     np.testing.assert_allclose(full[0], np.mean(chunks, axis=0), rtol=1e-6, atol=1e-7)
     assert full[0].mean() > 0
@@ -123,3 +128,19 @@ def test_bad_chunking_and_renderer_are_config_errors(tmp_path):
         render_reference(compose(TINY), tmp_path / "r.exr", 3, TOTAL, progress=False)
     with pytest.raises(ConfigError, match="renderer=pt"):
         render_reference(compose(TINY + ["renderer=preview"]), tmp_path / "r.exr", CHUNK, TOTAL, progress=False)
+
+
+def test_reference_seeds_are_disjoint_from_render_seeds(full):
+    """A reference asked for with seed 3 draws from the reference stream (never the seeds of a render with
+    seed 3), and a comparison refuses renders whose seeds overlap the reference's."""
+    _, attrs, _ = full
+    used = reference_seed_range(attrs)
+    assert used.start >= REF_SEED and len(used) == TOTAL // CHUNK
+    check_independent(attrs, range(0, 1000))  # every ordinary render seed is independent
+    with pytest.raises(ConfigError, match="not independent"):
+        check_independent(attrs, [used.start + 1])
+    old = {"seed": 0, "spp": 64, "chunk_spp": 16}  # a reference from before the stream: seeds 0..3
+    with pytest.raises(ConfigError, match="seeds 0..3"):
+        check_independent(old, [0, 1])
+    assert reference_base_seed(REF_SEED + 5) == REF_SEED + 5
+

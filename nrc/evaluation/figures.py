@@ -35,12 +35,14 @@ from omegaconf import open_dict
 
 from nrc.config import absolute_paths, compose
 from nrc.evaluation.metrics import medium_mask, rel_mse
-from nrc.evaluation.reference import REF_SEED, default_reference_path, read_reference, render_reference
+from nrc.evaluation.reference import (REF_SEED, check_independent, default_reference_path, read_reference,
+                                     render_reference)
 from nrc.io.png import auto_exposure, tonemap
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
 
+RENDER_SEEDS = range(0, 1000)  # the seeds of the compared renders (pt 7, 11, 100 + frame; nrc 0)
 HEROES: dict[str, tuple[str, list[str]]] = {
     "cumulus": ("cumulus (the default scene)", []),
     "stratocumulus": ("stratocumulus, from below", [
@@ -68,7 +70,9 @@ def _reference(args: argparse.Namespace, overrides: list[str], spp: int):
     path = args.ref_dir / default_reference_path(cfg, spp).name
     if not path.is_file():
         render_reference(cfg, path, min(args.chunk_spp, spp), spp)
-    return read_reference(path), path
+    ref = read_reference(path)
+    check_independent(ref.attrs, RENDER_SEEDS, path)
+    return ref, path
 
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:

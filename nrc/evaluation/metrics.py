@@ -101,6 +101,53 @@ def rel_mse(x: ArrayLike, ref: ArrayLike, mask: ArrayLike | None = None, eps: fl
     return float(_select((x - ref) ** 2 / (ref**2 + eps), mask).mean())
 
 
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+def reference_scale(ref: ArrayLike, mask: ArrayLike | None = None) -> float:
+    """The mean luminance of the reference over the selected pixels (all when ``mask`` is ``None``)."""
+    ref = _np(ref)
+    lum = ref @ _LUMINANCE
+    sel = lum if mask is None else lum[medium_mask(mask)]
+    return float(sel.mean())
+
+
+def normalised_rel_mse(x: ArrayLike, ref: ArrayLike, mask: ArrayLike | None = None,
+                       scale_mask: ArrayLike | None = None, eps: float = 0.01) -> float:
+    """Relative MSE of ``x / s`` against ``ref / s``, ``s`` the reference's mean luminance over ``scale_mask``
+    (the medium pixels; all pixels when ``None``), averaged over ``mask``.
+
+    Plain :func:`rel_mse` adds ``eps = 0.01`` to ``r^2``, which dominates where the reference is ~0.1 and
+    forgives a dark image (a uniformly 35 % too dark render of such a scene scores ~0.01); after normalising,
+    the reference's medium pixels are ~1 and ``eps`` no longer decides the ranking.
+    """
+    s = reference_scale(ref, scale_mask)
+    if not s > 0:
+        raise ValueError("normalised_rel_mse: the reference is black over the scale pixels")
+    x, ref = _pair(x, ref)
+    return rel_mse(x / s, ref / s, mask, eps)
+
+
+def mean_ratio(x: ArrayLike, ref: ArrayLike, mask: ArrayLike | None = None) -> float:
+    """The image mean over the reference's over the selected pixels (1: no overall bias; < 1: too dark)."""
+    x, ref = _pair(x, ref)
+    return float(_select(x, mask).mean() / _select(ref, mask).mean())
+
+
+def hdr_flip(x: ArrayLike, ref: ArrayLike) -> float:
+    """Mean HDR-FLIP error (Andersson et al. 2021) of ``x`` against ``ref`` through NVIDIA's ``flip-evaluator``
+    package (its defaults: 67 pixels per degree, ACES tone mapping, exposures chosen from the reference).
+    Non-finite and negative values of the copies are set to 0 (FLIP needs non-negative input)."""
+    try:
+        import flip_evaluator
+    except ImportError:
+        raise ImportError("hdr_flip needs NVIDIA's FLIP: pip install -e '.[flip]' (flip-evaluator)") from None
+    a, b = (np.ascontiguousarray(np.nan_to_num(_np(v), nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0)
+                                 .astype(np.float32)) for v in (ref, x))
+    _, mean, _ = flip_evaluator.evaluate(a, b, "HDR", applyMagma=False)
+    return float(mean)
+
+
 # ---------------------------------------------------------------------------- K independent renders
 def signed_relative_bias(xs: ArrayLike, ref: ArrayLike, mask: ArrayLike | None = None, eps: float = 0.01) -> float:
     """Signed bias: mean over pixels of ``(mean_k x_k - r) / (|r| + eps)`` (> 0: too bright).
@@ -152,11 +199,13 @@ def thesis_relative_variance(x: ArrayLike, ref: ArrayLike, mask: ArrayLike | Non
 
 
 # ---------------------------------------------------------------------------- report
-def _scope_report(xs: np.ndarray, ref: np.ndarray, mask: np.ndarray | None) -> dict[str, float | None]:
+def _scope_report(xs: np.ndarray, ref: np.ndarray, mask: np.ndarray | None,
+                  scale_mask: np.ndarray | None = None) -> dict[str, float | None]:
     """All metrics over one pixel set; single-image metrics are averaged over the renders."""
     per_render = {
         "mse": mse, "rel_mse": rel_mse, "thesis_relative_bias": thesis_relative_bias,
-        "thesis_relative_variance": thesis_relative_variance,
+        "thesis_relative_variance": thesis_relative_variance, "mean_ratio": mean_ratio,
+        "rel_mse_normalised": lambda x, r, m: normalised_rel_mse(x, r, m, scale_mask),
     }
     report: dict[str, float | None] = {k: float(np.mean([f(x, ref, mask) for x in xs])) for k, f in per_render.items()}
     report["mean_relative_bias"] = mean_relative_bias(xs, ref, mask)
@@ -175,9 +224,11 @@ def error_report(xs: ArrayLike, ref: ArrayLike, mask: ArrayLike | None = None) -
             is ``None``.
 
     Returns:
-        ``{"renders": K, "all": {...}, "medium": {...} | None}``; each scope holds ``mse``, ``rel_mse`` and
-        the thesis metrics (averaged over the K renders), ``mean_relative_bias``, ``signed_relative_bias``
-        and ``relative_variance`` (``None`` when K = 1). Default ``eps`` = 0.01 throughout.
+        ``{"renders": K, "all": {...}, "medium": {...} | None}``; each scope holds ``mse``, ``rel_mse``,
+        ``rel_mse_normalised`` (images scaled so the reference's mean luminance over the medium pixels, or
+        all pixels without a mask, is 1: :func:`normalised_rel_mse`), ``mean_ratio`` (image mean over the
+        reference's) and the thesis metrics (averaged over the K renders), ``mean_relative_bias``,
+        ``signed_relative_bias`` and ``relative_variance`` (``None`` when K = 1). Default ``eps`` = 0.01.
     """
     xs_np, ref_np = _np(xs), _np(ref)
     if xs_np.ndim == 3:
@@ -186,6 +237,6 @@ def error_report(xs: ArrayLike, ref: ArrayLike, mask: ArrayLike | None = None) -
     m = None if mask is None else medium_mask(mask)
     return {
         "renders": int(len(xs_np)),
-        "all": _scope_report(xs_np, ref_np, None),
-        "medium": None if m is None else _scope_report(xs_np, ref_np, m),
+        "all": _scope_report(xs_np, ref_np, None, m),
+        "medium": None if m is None else _scope_report(xs_np, ref_np, m, m),
     }

@@ -214,7 +214,8 @@ def render_reference(
 
     Args:
         cfg: the app config (``renderer.name`` must be ``pt``); ``scene.integrator.spp`` is ignored
-            (``total_spp`` counts), ``scene.integrator.seed`` is the base seed.
+            (``total_spp`` counts); ``scene.integrator.seed`` picks the base seed (:func:`reference_base_seed`:
+            seeds below ``REF_SEED`` move into the reference stream, disjoint from every render's seeds).
         out: the EXR path; the checkpoint is ``<out>.ckpt.npz``.
         chunk_spp: spp per chunk; ``total_spp`` must be a multiple of it.
         progress: show a tqdm bar (with ETA) over chunks.
@@ -226,7 +227,9 @@ def render_reference(
     if cfg.renderer.name != "pt":
         raise ConfigError(f"references are rendered with renderer=pt, got renderer={cfg.renderer.name}")
     n_chunks = _chunk_count(chunk_spp, total_spp)
-    out, seed, chash = Path(out), int(cfg.scene.integrator.seed), config_hash(cfg)
+    if n_chunks > REF_SEEDS_PER_BASE:
+        raise ConfigError(f"a reference takes at most {REF_SEEDS_PER_BASE} chunks, got {n_chunks}: raise --chunk-spp")
+    out, seed, chash = Path(out), reference_base_seed(int(cfg.scene.integrator.seed)), config_hash(cfg)
     ckpt = checkpoint_path(out)
     total, total_sq, done = _load_checkpoint(ckpt, chash, chunk_spp, seed, n_chunks)
     scene = load_scene(cfg.scene, resolve_device(cfg.get("device", "cpu")))
@@ -255,7 +258,34 @@ def render_reference(
     return reference
 
 
-REF_SEED = 1_000_000  # the base seed of every reference this repo renders (scored renders use seeds from 1000)
+REF_SEED = 1_000_000  # references draw seeds >= REF_SEED; every render they judge uses seeds below it
+REF_SEEDS_PER_BASE = 10_000  # chunks a reference of one base seed may use
+
+
+def reference_base_seed(seed: int) -> int:
+    """The first chunk seed of a reference asked for with ``scene.integrator.seed = seed``: seeds below
+    :data:`REF_SEED` are moved into the reference stream (``REF_SEED + seed * REF_SEEDS_PER_BASE``), so a
+    reference never repeats the random numbers of a render with the same nominal seed (chunk ``i`` uses
+    ``base + i``)."""
+    if seed < 0:
+        raise ConfigError(f"scene.integrator.seed must be >= 0 for a reference, got {seed}")
+    return seed if seed >= REF_SEED else REF_SEED + seed * REF_SEEDS_PER_BASE
+
+
+def reference_seed_range(attrs: dict) -> range:
+    """The chunk seeds a reference EXR was rendered with (from its header ``seed``, ``spp``, ``chunk_spp``)."""
+    seed, spp, chunk = int(attrs.get("seed", 0)), int(attrs.get("spp", 1)), int(attrs.get("chunk_spp", 1))
+    return range(seed, seed + max(1, spp // max(1, chunk)))
+
+
+def check_independent(attrs: dict, seeds, path: str | Path = "the reference") -> None:
+    """Refuse to judge renders with seeds that overlap the reference's own (correlated errors would cancel)."""
+    used = reference_seed_range(attrs)
+    overlap = sorted({int(s) for s in seeds} & set(used))
+    if overlap or any(int(s) >= REF_SEED for s in seeds):
+        shown = overlap[:3] or [s for s in seeds if int(s) >= REF_SEED][:3]
+        raise ConfigError(f"{path} was rendered with seeds {used.start}..{used.stop - 1}; the compared renders "
+                          f"use seed(s) {shown} from the reference stream (>= {REF_SEED}): not independent")
 REFERENCE_DIR = Path(__file__).resolve().parents[2] / "data" / "references"
 
 

@@ -57,7 +57,8 @@ REPO = Path(__file__).resolve().parents[2]  # the checkout (data/references, out
 
 from nrc.config import CONF_DIR, code_version, compose, resolve_device  # noqa: E402
 from nrc.evaluation.metrics import mean_relative_bias, medium_mask, mse, rel_mse, relative_variance  # noqa: E402
-from nrc.evaluation.reference import REF_SEED, default_reference_path, read_reference, render_reference  # noqa: E402
+from nrc.evaluation.reference import (REF_SEED, check_independent, default_reference_path, read_reference,  # noqa: E402
+                                     render_reference)
 from nrc.scene import load_scene  # noqa: E402
 
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
@@ -524,7 +525,9 @@ def plot(path: Path, rows, meta) -> None:
 def get_reference(cfg, args, log) -> tuple[Path, Any]:
     """The reference EXR: ``--reference``, or the default file for this scene (rendered when missing)."""
     if args.reference:
-        return args.reference, read_reference(args.reference)
+        ref = read_reference(args.reference)
+        check_independent(ref.attrs, range(SEED_BASE, SEED_BASE + 10_000), args.reference)
+        return args.reference, ref
     from omegaconf import open_dict
 
     path = default_reference_path(cfg, args.ref_spp)
@@ -534,7 +537,9 @@ def get_reference(cfg, args, log) -> tuple[Path, Any]:
         with open_dict(ref_cfg):
             ref_cfg.scene.integrator.seed = REF_SEED
         render_reference(ref_cfg, path, min(args.ref_chunk, args.ref_spp), args.ref_spp, progress=args.progress)
-    return path, read_reference(path)
+    ref = read_reference(path)
+    check_independent(ref.attrs, range(SEED_BASE, SEED_BASE + 10_000), path)
+    return path, ref
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -36,7 +36,7 @@ MAGIC = b"NRCCKPT\n"
 VERSION = 2
 KEYS = ("version", "frame", "cache", "ring", "accum", "n_accum", "history", "config")
 MAY_CHANGE = ("frames", "renderer.resume", "renderer.checkpoint_every", "renderer.log", "renderer.reference",
-              "renderer.backend", "tonemap", "exposure", "device")
+              "renderer.backend", "tonemap", "exposure", "denoise", "device")
 COMPARED = ("scene", "renderer", "transmittance", "cache", "encoding", "extra_inputs", "batch_filter", "frames",
             "device", "tonemap", "exposure")
 
