@@ -99,3 +99,31 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
         assert len(summary["equal_time"]) == 1 and summary["equal_time"][0]["ratio_rel_mse"] > 0
         assert len(summary["equal_cpu_time"]) == 1 and summary["equal_cpu_time"][0]["ratio_rel_mse"] > 0
         assert "Equal time per frame" in md
+
+
+def test_denoised_twins_and_both_baselines(sve, tmp_path):
+    """--denoise: every single-frame configuration gets a `+oidn` twin whose time includes the denoise time, and
+    NRC is compared with both the raw and the denoised path tracer."""
+    pytest.importorskip("pyoidn")
+    from conftest import compose
+    from nrc.evaluation.reference import render_reference
+
+    render_reference(compose(TINY + ["scene.integrator.seed=1000000"]), tmp_path / "ref.exr", 8, 32, progress=False)
+    nrc = ("nrc_tiny=renderer=nrc,encoding=triangle_oneblob,renderer.training.width=8,renderer.training.height=8,"
+           "cache.network.n_neurons=16,cache.network.n_hidden_layers=2")
+    argv = ["--preset", "none", "--out", str(tmp_path / "out"), "--reference", str(tmp_path / "ref.exr"),
+            "--configs", "pt", "--config", nrc, "--pt-spp", "1,2", "--repeats", "2", "--warmup", "1", "--frames", "2",
+            "--mode", "single", "--denoise", "--quiet", "--threads", "1", *TINY]
+    assert sve.main(argv) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    rows = {(r["config"], r["spp"]): r for r in summary["rows"]}
+    assert set(c for c, _ in rows) == {"pt", "pt+oidn", "nrc_tiny", "nrc_tiny+oidn"}
+    for (config, spp), r in rows.items():
+        if config.endswith("+oidn"):
+            raw = rows[(config[:-5], spp)]
+            assert r["denoised"] and r["time_s"] == pytest.approx(raw["time_s"] + r["time_denoise_s"])
+            assert r["rel_mse"] != raw["rel_mse"] and 0 < r["mean_ratio_medium"]
+    against = {(q["config"], q["baseline"]) for q in summary["equal_time"]}
+    assert against == {("nrc_tiny", "pt"), ("nrc_tiny+oidn", "pt+oidn"), ("nrc_tiny", "pt+oidn")}
+    md = (tmp_path / "out" / "speed_vs_error.md").read_text()
+    assert "| nrc_tiny+oidn | pt+oidn |" in md and "mean / reference, medium" in md

@@ -56,7 +56,8 @@ import torch
 REPO = Path(__file__).resolve().parents[2]  # the checkout (data/references, outputs/ and git live there)
 
 from nrc.config import CONF_DIR, code_version, compose, resolve_device  # noqa: E402
-from nrc.evaluation.metrics import mean_relative_bias, medium_mask, mse, rel_mse, relative_variance  # noqa: E402
+from nrc.evaluation.metrics import (mean_ratio, mean_relative_bias, medium_mask, mse,  # noqa: E402
+                                   normalised_rel_mse, rel_mse, relative_variance)
 from nrc.evaluation.reference import (REF_SEED, check_independent, default_reference_path, read_reference,  # noqa: E402
                                      render_reference)
 from nrc.scene import load_scene  # noqa: E402
@@ -67,6 +68,23 @@ PRESETS: dict[str, list[str]] = {
         "scene=sun_front", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
         "scene.volume.density_scale=0.6", "scene.camera.width=160", "scene.camera.height=90",
     ],
+    # the scene types of docs/results.md (the Disney cloud unless named otherwise)
+    "side_lit": [
+        "scene=sun_sky", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
+        "scene.volume.density_scale=0.6", "scene.volume.g=0.5", "scene.lights.0.direction=[-1,-0.25,0]",
+        "scene.camera.width=160", "scene.camera.height=90",
+    ],
+    "back_lit_thin": [
+        "scene=sun_front", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
+        "scene.volume.density_scale=0.15", "scene.volume.g=0.95", "scene.lights.0.direction=[0.2,-0.3,0.93]",
+        "scene.camera.width=160", "scene.camera.height=90",
+    ],
+    "point_below": [
+        "scene=point", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
+        "scene.volume.density_scale=0.6", "scene.volume.g=-0.3", "scene.lights.0.position=[0,-60,0]",
+        "scene.lights.0.intensity=[3000,2900,2800]", "scene.camera.width=160", "scene.camera.height=90",
+    ],
+    "cumulus": ["scene=sun", "scene.camera.width=160", "scene.camera.height=90"],  # the default scene
     "none": [],
 }
 # name -> Hydra overrides. The pt configurations together (their Pareto front) are the baseline of the ratios.
@@ -91,7 +109,8 @@ NRC_DEFAULTS = ["renderer.training.width=64", "renderer.training.height=64", "re
 SEED_BASE = 1000  # seeds of the scored renders; references use seeds >= 1e6 (nrc.evaluation.reference.REF_SEED)
 FIELDS = [
     "mode", "config", "renderer", "spp", "frames", "time_s", "cpu_s", "rel_mse", "rel_mse_medium", "rel_mse_corr",
-    "rel_mse_medium_corr", "bias", "bias_medium",
+    "rel_mse_medium_corr", "bias", "bias_medium", "mean_ratio", "mean_ratio_medium", "rel_mse_norm",
+    "rel_mse_norm_medium", "denoised",
     "variance", "variance_medium", "mse", "mse_medium", "renders", "rel_mse_floor", "rel_mse_floor_medium",
 ]
 
@@ -134,6 +153,8 @@ class Scorer:
             row["rel_mse" + suffix] = float(np.mean([rel_mse(x, self.ref, m) for x in xs]))
             row["mse" + suffix] = float(np.mean([mse(x, self.ref, m) for x in xs]))
             row["bias" + suffix] = mean_relative_bias(xs, self.ref, m)
+            row["mean_ratio" + suffix] = float(np.mean([mean_ratio(x, self.ref, m) for x in xs]))
+            row["rel_mse_norm" + suffix] = float(np.mean([normalised_rel_mse(x, self.ref, m, mask) for x in xs]))
             row["variance" + suffix] = relative_variance(xs, self.ref, m) if len(xs) >= 2 else None
         row["rel_mse_floor"] = self.floor
         row["rel_mse_floor_medium"] = self.floor_medium
@@ -193,6 +214,9 @@ def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
             rows.append({"mode": "single", "config": name, "renderer": "pt", "spp": spp, "frames": 1,
                          "time_s": float(np.mean(times)), "cpu_s": float(np.mean(cpu)), **scorer.score(frames)})
             log(rows[-1])
+            if args.denoise:
+                rows.append(denoised_row(rows[-1], frames, scorer))
+                log(rows[-1])
     else:
         for spp in args.nrc_spp:
             frames, times, cpu = [], [], []
@@ -210,7 +234,48 @@ def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
             rows.append({"mode": "single", "config": name, "renderer": "nrc", "spp": spp, "frames": 1,
                          "time_s": float(np.mean(times)), "cpu_s": float(np.mean(cpu)), **scorer.score(frames)})
             log(rows[-1])
+            if args.denoise:
+                rows.append(denoised_row(rows[-1], frames, scorer))
+                log(rows[-1])
     return rows
+
+
+DENOISED = "+oidn"  # suffix of a configuration's denoised twin
+
+
+def denoised_row(row: dict[str, Any], frames: list[np.ndarray], scorer: Scorer) -> dict[str, Any]:
+    """The twin of a single-frame row with every frame denoised by OIDN; the denoise time (median over the
+    frames, measured now) is added to its time per frame."""
+    from nrc.denoise import denoise
+
+    out, times, cpu = [], [], []
+    for f in frames:
+        t0, c0 = time.perf_counter(), time.process_time()
+        out.append(denoise(f).astype(np.float64))
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    twin = {**row, "config": row["config"] + DENOISED, "denoised": True, **scorer.score(out)}
+    twin["time_s"] = row["time_s"] + float(np.median(times))
+    twin["cpu_s"] = None if row.get("cpu_s") is None else row["cpu_s"] + float(np.median(cpu))
+    twin["time_denoise_s"] = float(np.median(times))
+    return twin
+
+
+def all_ratios(rows: list[dict[str, Any]], baseline: list[str] | None, clock: str = "time_s") -> list[dict[str, Any]]:
+    """Equal-time ratios against every baseline the rows allow: raw NRC against the raw path tracers; with
+    denoised twins also raw NRC and NRC + OIDN against the path tracers + OIDN (each item's ``baseline``)."""
+    if not baseline:
+        return []
+    raw = [r for r in rows if not r.get("denoised")]
+    den = [r for r in rows if r.get("denoised")]
+    out = [{**q, "baseline": "pt"} for q in equal_time_ratios(raw, baseline, clock)]
+    den_base = [b + DENOISED for b in baseline]
+    if any(r["config"] in den_base for r in den):
+        pt_den = [r for r in den if r["renderer"] == "pt"]
+        nrc_raw = [r for r in raw if r["renderer"] != "pt"]
+        out += [{**q, "baseline": "pt" + DENOISED} for q in equal_time_ratios(den, den_base, clock)]
+        out += [{**q, "baseline": "pt" + DENOISED} for q in equal_time_ratios(pt_den + nrc_raw, den_base, clock)]
+    return out
 
 
 def checkpoints(n_max: int) -> list[int]:
@@ -422,7 +487,7 @@ def write_outputs(out: Path, rows, ratios, cross, meta) -> None:
         w.writeheader()
         for r in rows:
             w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in FIELDS})
-    ratios_cpu = equal_time_ratios(rows, meta["baseline"], "cpu_s") if meta.get("baseline") else []
+    ratios_cpu = all_ratios(rows, baseline_names(meta.get("baseline")), "cpu_s")
     meta["equal_cpu_time"] = ratios_cpu
     (out / "summary.json").write_text(json.dumps({"meta": meta, "rows": rows, "equal_time": ratios,
                                                   "equal_cpu_time": ratios_cpu, "crossover": cross}, indent=2))
@@ -447,11 +512,13 @@ def markdown(rows, ratios, cross, meta) -> str:
             continue
         lines += [f"**{title}**", "",
                   "| config | spp/frame | frames | time (s) | CPU time (s) | relMSE medium | relMSE all | "
-                  "rel. bias medium | rel. variance medium | renders |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "relMSE medium, normalised | mean / reference, medium | rel. bias medium | rel. variance medium "
+                  "| renders |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in sel:
             lines.append(f"| {r['config']} | {r['spp']} | {r['frames']} | {r['time_s']:.3g} | {fmt(r.get('cpu_s'))} | "
-                         f"{fmt(r.get('rel_mse_medium'))} | {fmt(r['rel_mse'])} | {fmt(r.get('bias_medium'))} | "
+                         f"{fmt(r.get('rel_mse_medium'))} | {fmt(r['rel_mse'])} | {fmt(r.get('rel_mse_norm_medium'))} | "
+                         f"{fmt(r.get('mean_ratio_medium'))} | {fmt(r.get('bias_medium'))} | "
                          f"{fmt(r.get('variance_medium'))} | {r['renders']} |")
         lines.append("")
     if ratios:
@@ -460,11 +527,11 @@ def markdown(rows, ratios, cross, meta) -> str:
                   "interpolated (log-log) at the NRC time per frame (beyond PT's slowest point extrapolated with relMSE ~ 1/time; below its fastest "
                   "frame, PT's fastest frame's error: a frame cannot take less than PT's smallest spp).", "",
                   "The corrected ratio subtracts the reference's noise floor from both relMSEs first.", "",
-                  "| config | spp/frame | time/frame (s) | NRC relMSE medium | PT relMSE medium at equal time | "
-                  "ratio medium | ratio all | ratio medium, floor-corrected | PT extrapolated |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+                  "| config | against | spp/frame | time/frame (s) | NRC relMSE medium | PT relMSE medium at equal "
+                  "time | ratio medium | ratio all | ratio medium, floor-corrected | PT extrapolated |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
         for q in ratios:
-            lines.append(f"| {q['config']} | {q['spp']} | {q['time_s']:.3g} | "
+            lines.append(f"| {q['config']} | {q.get('baseline', 'pt')} | {q['spp']} | {q['time_s']:.3g} | "
                          f"{fmt(q.get('pt_rel_mse_medium') and q['ratio_rel_mse_medium'] * q['pt_rel_mse_medium'])} | "
                          f"{fmt(q.get('pt_rel_mse_medium'))} | {fmt(q.get('ratio_rel_mse_medium'), 2)} | "
                          f"{fmt(q.get('ratio_rel_mse'), 2)} | {fmt(q.get('ratio_rel_mse_medium_corr'), 2)} | "
@@ -533,7 +600,7 @@ def get_reference(cfg, args, log) -> tuple[Path, Any]:
     path = default_reference_path(cfg, args.ref_spp)
     if not path.is_file():
         log(f"rendering the reference {path} ({args.ref_spp} spp)")
-        ref_cfg = compose(args.scene_overrides + ["renderer=pt", "transmittance=ratio"])
+        ref_cfg = compose(args.scene_overrides + ["renderer=pt", "transmittance=ratio", "renderer.backend=compiled"])
         with open_dict(ref_cfg):
             ref_cfg.scene.integrator.seed = REF_SEED
         render_reference(ref_cfg, path, min(args.ref_chunk, args.ref_spp), args.ref_spp, progress=args.progress)
@@ -563,6 +630,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="configurations also run in accumulate mode (comma-separated; 'all' for every one)")
     p.add_argument("--nrc-overrides", default=",".join(NRC_DEFAULTS),
                    help="Hydra overrides applied to every nrc configuration before its own (comma-separated)")
+    p.add_argument("--denoise", action="store_true",
+                   help="also score every single-frame configuration denoised by OIDN (time + denoise time)")
     p.add_argument("--reference", type=Path, default=None)
     p.add_argument("--ref-spp", type=int, default=512)
     p.add_argument("--ref-chunk", type=int, default=64)
@@ -610,7 +679,6 @@ def main(argv: list[str] | None = None) -> int:
     def finish() -> tuple[dict, list, list]:
         """Ratios, crossovers and outputs from the rows so far (written after every configuration)."""
         baseline = [n for n, o in configs.items() if _renderer_of(o) == "pt" and n not in skipped] or None
-        ratios = equal_time_ratios(rows, baseline) if baseline else []
         cross = crossovers(rows, baseline) if baseline else []
         meta = {
             # paths relative to the repo root (../shared/...), never this machine's
@@ -625,7 +693,7 @@ def main(argv: list[str] | None = None) -> int:
             "wall_time_s": time.perf_counter() - start,
         }
         add_corrected(rows, ref.rel_mse_floor, ref.rel_mse_floor_medium)
-        ratios = equal_time_ratios(rows, baseline) if baseline else []
+        ratios = all_ratios(rows, baseline)
         write_outputs(args.out, rows, ratios, cross, meta)
         return meta, ratios, cross
 
@@ -644,7 +712,7 @@ def main(argv: list[str] | None = None) -> int:
     meta, ratios, cross = finish()
     baseline = "+".join(baseline_names(meta["baseline"]))
     for q in ratios:
-        log(f"equal-time relMSE ratio {q['config']}/{baseline} (spp {q['spp']}): "
+        log(f"equal-time relMSE ratio {q['config']}/{q.get('baseline', baseline)} (spp {q['spp']}): "
             f"medium {fmt(q.get('ratio_rel_mse_medium'), 2)}, all {fmt(q.get('ratio_rel_mse'), 2)}")
     for c in cross:
         log(f"crossover {c['config']} vs {baseline}: {fmt(c['crossover_time_s'])} s")
@@ -661,7 +729,7 @@ def replot(out: Path) -> int:
     add_corrected(rows, meta["rel_mse_floor"], meta["rel_mse_floor_medium"])
     # every pt configuration of the run is part of the baseline (older summaries named only the first)
     baseline = meta["baseline"] = list(dict.fromkeys(r["config"] for r in rows if r["renderer"] == "pt")) or None
-    write_outputs(out, rows, equal_time_ratios(rows, baseline), crossovers(rows, baseline), meta)
+    write_outputs(out, rows, all_ratios(rows, baseline), crossovers(rows, baseline), meta)
     print(f"rewrote {out}")
     return 0
 
