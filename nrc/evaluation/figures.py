@@ -2,10 +2,10 @@
 
 Writes into ``--out`` (default ``docs/images/``):
 
-* ``clouds.png``: converged path-traced heroes of the three procedural kinds (``cumulus``, the default
-  scene; ``stratocumulus`` seen from below; ``blobs``, the thesis-era generator) and of the 1/16-resolution
-  Disney cloud (CC BY-SA 3.0, Walt Disney Animation Studios, read from ``../shared/data/``), all under the
-  default ``sun`` preset's lights. Each hero is a ``pt`` reference (``data/references/``, chunked and
+* ``clouds.png``: path-traced heroes (1536 spp: ~2 % per-pixel noise left) of the three procedural kinds
+  (``cumulus``, the default scene; ``stratocumulus`` seen from below; ``blobs``, the thesis-era generator) and
+  of the 1/16-resolution Disney cloud (CC BY-SA 3.0, Walt Disney Animation Studios, read from
+  ``../shared/data/``), all under the default ``sun`` preset's lights. Each hero is a ``pt`` reference (``data/references/``, chunked and
   resumable) shown with its own auto exposure.
 * ``nrc_vs_pt.png`` and ``nrc_vs_pt.json``: the default scene, the path tracer and NRC at equal time per
   frame beside the reference, every panel at the reference's exposure. NRC runs ``--frames`` frames from
