@@ -101,27 +101,25 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
                       "of camera samples with a real collision)"}
     if cfg.renderer.name == "nrc":
         attrs["frames"] = int(metrics.get("frames_done", cfg.frames))
-    _write("the run directory", out_dir, lambda: out_dir.mkdir(parents=True, exist_ok=True))
-    _write("the image", out_dir / "image.exr",
-           lambda: write_exr(out_dir / "image.exr", image, attrs, medium_alpha(scene)))
-    _write("the preview", out_dir / "preview.png",
-           lambda: write_png(out_dir / "preview.png", image, exposure, display.tonemap))
-    _write("the metrics", out_dir / "metrics.json",
-           lambda: (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2)))
-    written = ["image.exr", "preview.png", "metrics.json"]
-    if denoiser == "oidn":
+    outputs = {"image.exr": ("the image", image, attrs), "preview.png": ("the preview", image, None)}
+    if denoiser == "oidn":  # before anything is written: metrics.json then holds the denoise time
         t0 = time.perf_counter()
         denoised = denoise(image)
         metrics["time_denoise_s"] = time.perf_counter() - t0
         metrics["denoise"] = oidn_version()
-        _write("the denoised image", out_dir / "image_denoised.exr",
-               lambda: write_exr(out_dir / "image_denoised.exr", denoised, {**attrs, "denoiser": metrics["denoise"]},
-                                 medium_alpha(scene)))
-        _write("the denoised preview", out_dir / "preview_denoised.png",
-               lambda: write_png(out_dir / "preview_denoised.png", denoised, exposure, display.tonemap))
-        _write("the metrics", out_dir / "metrics.json",
-               lambda: (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2)))
-        written += ["image_denoised.exr", "preview_denoised.png"]
+        outputs["image_denoised.exr"] = ("the denoised image", denoised, {**attrs, "denoiser": metrics["denoise"]})
+        outputs["preview_denoised.png"] = ("the denoised preview", denoised, None)
+    _write("the run directory", out_dir, lambda: out_dir.mkdir(parents=True, exist_ok=True))
+    alpha = medium_alpha(scene)
+    for name, (what, img, header) in outputs.items():
+        path = out_dir / name
+        if name.endswith(".exr"):
+            _write(what, path, lambda: write_exr(path, img, header, alpha))
+        else:
+            _write(what, path, lambda: write_png(path, img, exposure, display.tonemap))
+    _write("the metrics", out_dir / "metrics.json",
+           lambda: (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2)))
+    written = [*outputs, "metrics.json"]
     if metrics.get("checkpoint"):
         written.append(f"checkpoint.pt (frame {metrics['checkpoint_frame']}, "
                        f"{metrics['checkpoint_bytes'] / 1e6:.1f} MB)")

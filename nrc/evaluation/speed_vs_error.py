@@ -202,6 +202,16 @@ def nrc_run(scene, cfg, spp: int, seed: int, frames: int, accumulate: bool,
 # ---------------------------------------------------------------------------- modes
 def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
     rows = []
+
+    def emit(spp: int, frames: list, times: list, cpu: list) -> None:
+        """One row of mean time per frame and scores (and, with ``--denoise``, its denoised twin)."""
+        rows.append({"mode": "single", "config": name, "renderer": cfg.renderer.name, "spp": spp, "frames": 1,
+                     "time_s": float(np.mean(times)), "cpu_s": float(np.mean(cpu)), **scorer.score(frames)})
+        log(rows[-1])
+        if args.denoise:
+            rows.append(denoised_row(rows[-1], frames, scorer))
+            log(rows[-1])
+
     if cfg.renderer.name == "pt":
         pt_warmup(scene, cfg)
         for spp in args.pt_spp:
@@ -211,12 +221,7 @@ def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
                 frames.append(img)
                 times.append(dt)
                 cpu.append(CPU_TIMES[-1])
-            rows.append({"mode": "single", "config": name, "renderer": "pt", "spp": spp, "frames": 1,
-                         "time_s": float(np.mean(times)), "cpu_s": float(np.mean(cpu)), **scorer.score(frames)})
-            log(rows[-1])
-            if args.denoise:
-                rows.append(denoised_row(rows[-1], frames, scorer))
-                log(rows[-1])
+            emit(spp, frames, times, cpu)
     else:
         for spp in args.nrc_spp:
             frames, times, cpu = [], [], []
@@ -231,12 +236,7 @@ def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
                 clock["c"] = time.process_time()
 
             nrc_run(scene, cfg, spp, SEED_BASE + spp, args.warmup + args.frames, False, cb)
-            rows.append({"mode": "single", "config": name, "renderer": "nrc", "spp": spp, "frames": 1,
-                         "time_s": float(np.mean(times)), "cpu_s": float(np.mean(cpu)), **scorer.score(frames)})
-            log(rows[-1])
-            if args.denoise:
-                rows.append(denoised_row(rows[-1], frames, scorer))
-                log(rows[-1])
+            emit(spp, frames, times, cpu)
     return rows
 
 
@@ -591,14 +591,10 @@ def plot(path: Path, rows, meta) -> None:
 # ---------------------------------------------------------------------------- main
 def get_reference(cfg, args, log) -> tuple[Path, Any]:
     """The reference EXR: ``--reference``, or the default file for this scene (rendered when missing)."""
-    if args.reference:
-        ref = read_reference(args.reference)
-        check_independent(ref.attrs, range(SEED_BASE, SEED_BASE + 10_000), args.reference)
-        return args.reference, ref
     from omegaconf import open_dict
 
-    path = default_reference_path(cfg, args.ref_spp)
-    if not path.is_file():
+    path = args.reference or default_reference_path(cfg, args.ref_spp)
+    if not args.reference and not path.is_file():
         log(f"rendering the reference {path} ({args.ref_spp} spp)")
         ref_cfg = compose(args.scene_overrides + ["renderer=pt", "transmittance=ratio", "renderer.backend=compiled"])
         with open_dict(ref_cfg):

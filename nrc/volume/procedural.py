@@ -86,21 +86,24 @@ class _Noise:
         m = max(res)
         self.extent = tuple(n / m for n in res)  # half-extent of the lattice along each axis
 
-    def _sample(self, field: Tensor, period: float) -> Tensor:
-        """Trilinear lookup at every voxel of a lattice ``field`` that tiles space with ``period`` (in the
-        generator's coordinates) along each axis."""
+    def _voxel_grid(self) -> Tensor:
+        """``grid_sample`` coordinates of every voxel in a lattice that tiles ``[-1, 1]`` once per axis (the
+        period is the longest axis' span): ``(1, nx, ny, nz, 3)``, ordered (k, j, i) as grid_sample wants."""
         grids = []
         for n, e in zip(self.res, self.extent):
             p = ((torch.arange(n, dtype=torch.float32) + 0.5) / n * 2.0 - 1.0) * e
-            grids.append((p / period) % 1.0 * 2.0 - 1.0)
+            grids.append((p / 2.0) % 1.0 * 2.0 - 1.0)
         x, y, z = torch.meshgrid(*grids, indexing="ij")
+        return torch.stack([z, y, x], -1)[None]
+
+    @staticmethod
+    def _sample(field: Tensor, grid: Tensor) -> Tensor:
+        """Trilinear lookup of the periodic lattice ``field`` at the voxels of :meth:`_voxel_grid`."""
         pad = torch.cat([field, field[:1]], 0)
         pad = torch.cat([pad, pad[:, :1]], 1)
         pad = torch.cat([pad, pad[:, :, :1]], 2)  # wrap: index c equals index 0
-        # grid_sample's (x, y, z) index the (W, H, D) axes: pass (k, j, i) for field[i, j, k]; with
-        # align_corners, -1 .. 1 spans the padded lattice's c + 1 points, i.e. exactly one period.
-        g = torch.stack([z, y, x], -1)[None]
-        return F.grid_sample(pad[None, None], g, mode="bilinear", align_corners=True)[0, 0]
+        # with align_corners, -1 .. 1 spans the padded lattice's c + 1 points, i.e. exactly one period
+        return F.grid_sample(pad[None, None], grid, mode="bilinear", align_corners=True)[0, 0]
 
     def worley(self, cells: int) -> Tensor:
         """Billowy cellular noise ``1 - F1`` in ``[0, 1]``: one random feature point per cell of a periodic
@@ -130,11 +133,12 @@ class _Noise:
     def value(self, cells: int, octaves: int) -> Tensor:
         """Fractal value noise in about ``[-1, 1]``: periodic random lattices of ``cells * 2^o`` points."""
         out = torch.zeros(self.res)
+        grid = self._voxel_grid()  # the same lookup coordinates for every octave
         amp, total = 1.0, 0.0
         for o in range(octaves):
             c = cells * 2**o
             lattice = torch.rand((c, c, c), generator=self.gen) * 2.0 - 1.0
-            out += amp * self._sample(lattice, 2.0)
+            out += amp * self._sample(lattice, grid)
             total += amp
             amp *= 0.5
         return out / total

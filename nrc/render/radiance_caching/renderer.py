@@ -77,7 +77,7 @@ def rotation_y(degrees: float, device: torch.device) -> Tensor:
 
 
 MAX_NONFINITE_STEPS = 8  # consecutive skipped (non-finite) training steps that stop a run
-log = logging.getLogger("nrc")
+logger = logging.getLogger("nrc")
 
 
 class _StopOnSignal:
@@ -96,7 +96,7 @@ class _StopOnSignal:
             signal.raise_signal(signum)
             return
         self.signal = signum
-        log.warning("%s: finishing the current frame, then writing the checkpoint and the outputs (again to "
+        logger.warning("%s: finishing the current frame, then writing the checkpoint and the outputs (again to "
                     "stop at once)", signal.Signals(signum).name)
 
     def _restore(self) -> None:
@@ -259,11 +259,11 @@ class NRCRenderer:
     def _check_training(self, frame: int, stats: dict[str, Any]) -> None:
         """Warn about non-finite predictions and skipped steps; stop a cache that keeps diverging."""
         if stats.get("nonfinite_predictions"):
-            log.warning("frame %d: %d cache predictions were NaN/Inf (counted as 0 radiance)", frame,
+            logger.warning("frame %d: %d cache predictions were NaN/Inf (counted as 0 radiance)", frame,
                         stats["nonfinite_predictions"])
         skipped = getattr(self.cache, "n_skipped_steps", 0)
         if skipped > self._skipped_seen:
-            log.warning("frame %d: %d training steps skipped (non-finite loss or gradient; weights untouched)",
+            logger.warning("frame %d: %d training steps skipped (non-finite loss or gradient; weights untouched)",
                         frame, skipped - self._skipped_seen)
             self._skipped_seen = skipped
         if getattr(self.cache, "n_consecutive_skipped", 0) >= MAX_NONFINITE_STEPS:
