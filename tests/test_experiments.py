@@ -137,5 +137,28 @@ def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
     assert report.main(["nrc_vs_pt", "--root", str(root), "--docs", str(tmp_path / "docs"), "--results",
                         "--intro", str(tmp_path / "intro.md")]) == 0
     results = (tmp_path / "docs" / "results.md").read_text()
-    assert "Hand-written intro." in results and "docs/results/speed_480x270_v2/summary.json` is missing" in results
+    assert "Hand-written intro." in results and "docs/results/oidn_480x270_side_lit/summary.json` is missing" in results
     assert "NRC vs PT at 1 spp" in results and "equal-time relMSE ratio" not in results
+
+
+def test_headline_is_nrc_plus_oidn_against_pt_plus_oidn_with_the_bias():
+    """The results page's headline: the side-lit run's NRC + OIDN over PT + OIDN ratio at equal time, NRC + OIDN's
+    image mean beside it, the raw ratio, and the same ratio of every other scene-type run."""
+    from nrc.evaluation.experiments import headline
+
+    def run(ratio_den, mean):
+        rows = [{"mode": "single", "config": "nrc+oidn", "renderer": "nrc", "denoised": True, "time_s": 0.3,
+                 "mean_ratio_medium": mean},
+                {"mode": "single", "config": "pt+oidn", "renderer": "pt", "denoised": True, "time_s": 0.31,
+                 "mean_ratio_medium": 0.99}]
+        ratios = [{"config": "nrc+oidn", "baseline": "pt+oidn", "time_s": 0.3, "ratio_rel_mse_medium": ratio_den,
+                   "pt_rel_mse_medium": 0.004},
+                  {"config": "nrc", "baseline": "pt", "time_s": 0.29, "ratio_rel_mse_medium": 0.12,
+                   "pt_rel_mse_medium": 0.4}]
+        return {"rows": rows, "equal_time": ratios}
+
+    text = " ".join(headline({"oidn_160x90_side_lit": ("side-lit", run(4.5, 0.962)),
+                              "oidn_160x90_cumulus": ("cumulus", run(2.25, 1.05))}))
+    assert "relMSE ratio **4.5**" in text and "**0.962** of the reference" in text
+    assert "raw path tracer: 0.12" in text and "cumulus: 2.2 (mean 1.05)" in text
+    assert headline({"speed_160x90_v2": ("old", run(1.0, 1.0))}) == []

@@ -109,6 +109,7 @@ SEEDS = 8
 ORACLE = [*SMALL, "scene=sun_front", "scene.integrator.max_scatter=2", "scene.volume.albedo=0.7", "scene.volume.g=0.5",
           "scene.volume.density_scale=1.5", "scene.integrator.spp=16"]
 ZERO = [*SMALL, "scene=sun_sky", "scene.volume.albedo=0.9", "scene.integrator.spp=16"]
+FULL = ["renderer.cache_target=full"]  # NRC only: the oracle is the full scattered radiance
 
 
 @pytest.mark.parametrize("backend", ["eager", "step"])
@@ -118,7 +119,7 @@ def test_oracle_cache_makes_nrc_unbiased(backend):
     the NRC image equals the path tracer's within Monte Carlo error, on both step structures (``step``: the
     compiled backend's code, run eagerly)."""
     pt = render_images(ORACLE, SEEDS, "pt", backend=backend)
-    nrc = render_images([*ORACLE, "renderer.termination.min_vertices=2", "renderer.termination.p_continue=0.5"],
+    nrc = render_images([*ORACLE, *FULL, "renderer.termination.min_vertices=2", "renderer.termination.p_continue=0.5"],
                         SEEDS, "nrc", sun_oracle, backend=backend)
     assert_images_agree(nrc, pt)
 
@@ -128,9 +129,24 @@ def test_zero_cache_is_a_truncated_path_tracer(backend):
     """Terminating at vertex m into a zero cache is the path tracer with max_scatter = m - 1 (sun and sky,
     including the MIS-weighted sky reached from the last vertex), on both step structures."""
     pt = render_images([*ZERO, "scene.integrator.max_scatter=2"], SEEDS, "pt", backend=backend)
-    nrc = render_images([*ZERO, "renderer.termination.min_vertices=3"], SEEDS, "nrc",
+    nrc = render_images([*ZERO, *FULL, "renderer.termination.min_vertices=3"], SEEDS, "nrc",
                         lambda scene: lambda x, d: torch.zeros_like(x), backend=backend)
     assert_images_agree(nrc, pt)
+
+
+@pytest.mark.parametrize("backend", ["eager", "step"])
+def test_zero_indirect_cache_is_a_path_tracer_to_the_terminal_vertex(backend):
+    """``cache_target=indirect``: terminating at vertex m into a zero cache keeps vertex m's direct light (next-event
+    estimation by light sampling alone, sun and sky), so the image is the path tracer's with max_scatter = m,
+    one vertex more than the ``full`` target's (the scene on which the two differ)."""
+    pt = render_images([*ZERO, "scene.integrator.max_scatter=2"], SEEDS, "pt", backend=backend)
+    nrc = render_images([*ZERO, "renderer.termination.min_vertices=2", "renderer.cache_target=indirect"], SEEDS,
+                        "nrc", lambda scene: lambda x, d: torch.zeros_like(x), backend=backend)
+    assert_images_agree(nrc, pt)
+    full = render_images([*ZERO, *FULL, "renderer.termination.min_vertices=2"], SEEDS, "nrc",
+                         lambda scene: lambda x, d: torch.zeros_like(x), backend=backend)
+    with pytest.raises(AssertionError):
+        assert_images_agree(full, pt)
 
 
 @pytest.mark.slow
@@ -141,12 +157,12 @@ def test_compiled_nrc_matches_the_eager_nrc_and_the_oracle(fresh_machines):
 
     counters.clear()
     pt = render_images(ORACLE, SEEDS, "pt", backend="eager")
-    nrc = render_images([*ORACLE, "renderer.termination.min_vertices=2", "renderer.termination.p_continue=0.5"],
+    nrc = render_images([*ORACLE, *FULL, "renderer.termination.min_vertices=2", "renderer.termination.p_continue=0.5"],
                         SEEDS, "nrc", sun_oracle, backend="compiled")
     assert_images_agree(nrc, pt)
     graphs = counters["stats"]["unique_graphs"]
     other = [*ORACLE, "scene.volume.albedo=0.9", "scene.volume.g=0.2", "scene.volume.density_scale=0.7",
-             "scene.lights.0.direction=[0.2,-1,0.4]", "renderer.termination.min_vertices=2",
+             "scene.lights.0.direction=[0.2,-1,0.4]", *FULL, "renderer.termination.min_vertices=2",
              "renderer.termination.p_continue=0.5"]
     render_images(other, 2, "nrc", sun_oracle, backend="compiled")
     assert counters["stats"]["unique_graphs"] == graphs
@@ -166,9 +182,12 @@ class ConstantRandom(RandomSource):
         return [torch.full(key.shape, self.value)] * lanes
 
 
-def test_training_targets_match_a_hand_computed_path(tmp_path):
+@pytest.mark.parametrize("target", ["full", "indirect"])
+def test_training_targets_match_a_hand_computed_path(tmp_path, target):
     """Constant medium, global majorant, every uniform 0.3: the training path is deterministic and its two
-    records carry a (NEE_1 + a (NEE_2 + C)) and a (NEE_2 + C)."""
+    records carry a (NEE_1 + a (NEE_2 + C)) and a (NEE_2 + C) (``cache_target=full``), or, with the direct
+    light out of the cache (``indirect``), a (a NEE_2 + a (a NEE_3 + C)) and a (a NEE_3 + C): a terminating path adds
+    its own next-event estimate, and a record's target leaves out its own; the pixel is a NEE_1 + C."""
     np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
     sigma, albedo, g, c, u = 0.08, 0.8, 0.6, torch.tensor([0.2, 0.3, 0.4]), 0.3
     cfg = compose(["renderer=nrc", "scene=sun_front", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
@@ -177,15 +196,13 @@ def test_training_targets_match_a_hand_computed_path(tmp_path):
                    "scene.camera.look_at=[0,0,0]", "scene.integrator.spp=1", "renderer.free_flight=global",
                    "renderer.training.width=1", "renderer.training.height=1", "renderer.training.records_per_path=3",
                    "renderer.training.extra_vertices=2", "transmittance=biased_raymarch", "batch_filter.n_batches=1",
-                   "renderer.log.tensorboard=false"])
+                   "renderer.log.tensorboard=false", f"renderer.cache_target={target}"])
     scene = load_scene(cfg.scene)
     cache = StubCache(lambda x, d: c.expand_as(x).clone())
     r = NRCRenderer(scene, cfg, cache=cache)
     r.frame_rng = lambda frame: ConstantRandom(u)
     image, stats, _ = r.render_frame(0)
 
-    # The render path terminates at its first vertex: the pixel is the cache value (throughput 1).
-    torch.testing.assert_close(image.reshape(3), c)
     # Hand-traced training path (camera ray through the pixel at jitter (u, u)).
     cam, box = scene.camera, scene.grid.box
     o, d0 = cam.generate_rays(torch.zeros(1, dtype=torch.long), torch.full((1, 2), u))
@@ -201,8 +218,18 @@ def test_training_targets_match_a_hand_computed_path(tmp_path):
         T = torch.exp(-sigma * exit_distance(x, wi, box.lo, box.hi))
         return sun.irradiance * (hg_pdf(g, (d_in * wi).sum(-1)) * T)[:, None]
 
-    t2 = albedo * (nee(x2, d1) + c)
-    t1 = albedo * nee(x1, d0) + albedo * t2
+    if target == "full":
+        # The render path terminates at its first vertex: the pixel is the cache value (throughput 1).
+        torch.testing.assert_close(image.reshape(3), c)
+        t2 = albedo * (nee(x2, d1) + c)
+        t1 = albedo * nee(x1, d0) + albedo * t2
+    else:
+        torch.testing.assert_close(image.reshape(3), albedo * nee(x1, d0)[0] + c, rtol=1e-4, atol=1e-6)
+        d2, _ = hg_sample(g, d1, torch.full((1, 2), u))
+        x3 = x2 + step * d2
+        assert bool(((x3 > box.lo) & (x3 < box.hi)).all())  # the third vertex is inside the medium
+        t2 = albedo * (albedo * nee(x3, d2) + c)
+        t1 = albedo * (albedo * nee(x2, d1) + t2)
     (batch,) = cache.batches
     x, d, t = batch
     torch.testing.assert_close(x, torch.cat([x1, x2]), rtol=1e-5, atol=1e-4)
@@ -236,7 +263,7 @@ def test_training_queries_use_the_configured_weights(tmp_path, weights):
             "scene.integrator.spp=1", "renderer.free_flight=global", "renderer.training.width=1",
             "renderer.training.height=1", "renderer.training.records_per_path=3",
             "renderer.training.extra_vertices=2", "transmittance=biased_raymarch", "batch_filter.n_batches=1",
-            "renderer.log.tensorboard=false"]
+            "renderer.log.tensorboard=false", *FULL]
     targets = {}
     for mode in ("ema", weights):
         cfg = compose([*base, f"renderer.training.query_weights={mode}"])
@@ -354,3 +381,88 @@ def test_orbit_and_sun_animation_rotate_about_world_up():
     turned = r.frame_lights(1).directional[0].direction
     torch.testing.assert_close(turned, sun.direction * torch.tensor([-1.0, 1.0, -1.0]), atol=1e-6, rtol=0)
     assert r.frame_camera(1) is scene.camera
+
+
+def test_auto_training_size_follows_the_medium_pixels():
+    """The budget rule: paths proportional to the pixels that see the medium, between the floor and the cap,
+    on a training image of the screen's aspect with sides that every batch filter can split."""
+    from nrc.render.radiance_caching.training_set import SIDE_MULTIPLE, auto_training_size
+
+    def paths(n, ppp=1.0, lo=4096, hi=65536, w=480, h=270):
+        tw, th = auto_training_size(n, w, h, ppp, lo, hi)
+        assert tw % SIDE_MULTIPLE == 0 and th % SIDE_MULTIPLE == 0 and tw > 0 and th > 0
+        return tw, th, tw * th
+
+    assert abs(paths(0)[2] / 4096 - 1) < 0.15  # the floor
+    assert abs(paths(10**7)[2] / 65536 - 1) < 0.15  # the cap
+    small, large = paths(20000)[2], paths(40000)[2]
+    assert abs(small / 20000 - 1) < 0.1 and abs(large / small - 2) < 0.2  # proportional in between
+    assert abs(paths(20000, ppp=0.5)[2] / 10000 - 1) < 0.15
+    tw, th, _ = paths(40000)
+    assert abs(tw / th - 480 / 270) < 0.2  # the screen's aspect
+
+
+def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
+    """A box whose density fills only its left half (x < 0): about half of the pixels that see the box see
+    the medium, and ``renderer.training.width/height=auto`` sizes the training image from them."""
+    from nrc.render.radiance_caching.training_set import medium_pixels
+
+    density = np.zeros((16, 16, 16), np.float32)
+    density[:8] = 1.0  # grid index 0 is x
+    np.savez(tmp_path / "half.npz", density=density)
+    base = ["renderer=nrc", "scene=sun_front", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'half.npz'}",
+            "scene.camera.width=64", "scene.camera.height=32", "scene.camera.position=[0,0,300]",
+            "scene.camera.look_at=[0,0,0]", "renderer.log.tensorboard=false"]
+    scene = load_scene(compose(base).scene)
+    cam = scene.camera
+    o, d = cam.generate_rays(torch.arange(cam.num_pixels), torch.full((cam.num_pixels, 2), 0.5))
+    t0, t1 = scene.grid.box.intersect(o, d)
+    n_box = int((t1 > t0).sum())
+    n_medium = medium_pixels(cam, scene.grid)
+    assert n_box > 100 and abs(n_medium / n_box - 0.5) < 0.1
+    cfg = compose([*base, "renderer.training.width=auto", "renderer.training.height=auto",
+                   "renderer.training.min_paths=16", "renderer.training.paths_per_pixel=2"])
+    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, dd: torch.zeros_like(x)))
+    tr = r.settings.training
+    assert r.medium_pixels == n_medium and abs(tr.width * tr.height / (2 * n_medium) - 1) < 0.3
+    with pytest.raises(ConfigError, match="both be auto"):
+        NRCRenderer(scene, compose([*base, "renderer.training.width=auto", "renderer.training.height=64"]),
+                    cache=StubCache(lambda x, dd: torch.zeros_like(x)))
+
+
+@pytest.mark.parametrize("margin", [0.5, 2.0])
+def test_spread_rule_terminates_where_the_spread_exceeds_c_a0(tmp_path, margin):
+    """The deterministic path of the hand-computed test under ``termination.rule=spread``: a0 = |x0 - x1|^2 /
+    (4 pi) at the first vertex, and at the second spread^2 = |x1 - x2|^2 / p(d1). With spread_c half of
+    spread^2 / a0 the path terminates at vertex 2 (pixel a NEE_1 + a C); with twice that it scatters there
+    (its pixel also holds NEE_2) and terminates later."""
+    np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
+    sigma, albedo, g, c, u = 0.08, 0.8, 0.6, torch.tensor([0.2, 0.3, 0.4]), 0.3
+    base = ["renderer=nrc", "scene=sun_front", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
+            f"scene.volume.density_scale={sigma}", f"scene.volume.albedo={albedo}", f"scene.volume.g={g}",
+            "scene.camera.width=1", "scene.camera.height=1", "scene.camera.position=[0,0,150]",
+            "scene.camera.look_at=[0,0,0]", "scene.integrator.spp=1", "renderer.free_flight=global",
+            "renderer.training.width=1", "renderer.training.height=1", "renderer.training.records_per_path=3",
+            "renderer.training.extra_vertices=0", "transmittance=biased_raymarch", "batch_filter.n_batches=1",
+            "renderer.log.tensorboard=false", "renderer.termination.rule=spread", *FULL]
+    scene = load_scene(compose(base).scene)
+    cam, box = scene.camera, scene.grid.box
+    o, d0 = cam.generate_rays(torch.zeros(1, dtype=torch.long), torch.full((1, 2), u))
+    t0, _ = box.intersect(o, d0)
+    step = -math.log1p(-u) / sigma
+    x1 = o + (t0 + step)[:, None] * d0
+    d1, pdf1 = hg_sample(g, d0, torch.full((1, 2), u))
+    a0 = float(((x1 - o) ** 2).sum()) / (4 * math.pi)
+    spread2 = step * step / float(pdf1.reshape(-1)[0])
+    cfg = compose([*base, f"renderer.termination.spread_c={margin * spread2 / a0}"])
+    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: c.expand_as(x).clone()))
+    r.frame_rng = lambda frame: ConstantRandom(u)
+    image, _, _ = r.render_frame(0)
+    (sun,) = scene.lights
+    wi = -sun.direction[None]
+    nee1 = sun.irradiance * hg_pdf(g, (d0 * wi).sum(-1)) * torch.exp(-sigma * exit_distance(x1, wi, box.lo, box.hi))
+    at_2 = albedo * nee1.reshape(3) + albedo * c
+    if margin < 1:
+        torch.testing.assert_close(image.reshape(3), at_2, rtol=1e-4, atol=1e-6)
+    else:
+        assert bool((image.reshape(3) - at_2).abs().max() > 1e-3)

@@ -5,6 +5,7 @@ procedural scene (both modes, two configurations)."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 
 import pytest
@@ -102,8 +103,9 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
 
 
 def test_denoised_twins_and_both_baselines(sve, tmp_path):
-    """--denoise: every single-frame configuration gets a `+oidn` twin whose time includes the denoise time, and
-    NRC is compared with both the raw and the denoised path tracer."""
+    """--denoise: every single-frame configuration and every accumulated point gets a `+oidn` twin whose time
+    includes the denoise time, and NRC is compared with both the raw and the denoised path tracer (equal-time
+    ratios and crossovers); every row has its HDR-FLIP."""
     pytest.importorskip("pyoidn")
     from conftest import compose
     from nrc.evaluation.reference import render_reference
@@ -113,10 +115,18 @@ def test_denoised_twins_and_both_baselines(sve, tmp_path):
            "cache.network.n_neurons=16,cache.network.n_hidden_layers=2")
     argv = ["--preset", "none", "--out", str(tmp_path / "out"), "--reference", str(tmp_path / "ref.exr"),
             "--configs", "pt", "--config", nrc, "--pt-spp", "1,2", "--repeats", "2", "--warmup", "1", "--frames", "2",
-            "--mode", "single", "--denoise", "--quiet", "--threads", "1", *TINY]
+            "--mode", "both", "--acc-configs", "all", "--acc-max-frames", "2", "--acc-repeats", "2",
+            "--acc-pt-spp", "1", "--denoise", "--quiet", "--threads", "1", *TINY]
     assert sve.main(argv) == 0
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    rows = {(r["config"], r["spp"]): r for r in summary["rows"]}
+    acc = {(r["config"], r["frames"]): r for r in summary["rows"] if r["mode"] == "accumulate"}
+    assert set(acc) == {(c, n) for c in ("pt", "pt+oidn", "nrc_tiny", "nrc_tiny+oidn") for n in (1, 2)}
+    assert acc[("nrc_tiny+oidn", 2)]["time_s"] > acc[("nrc_tiny", 2)]["time_s"]
+    crossed = {(c["config"], c["baseline"]) for c in summary["crossover"]}
+    assert crossed == {("nrc_tiny", "pt"), ("nrc_tiny+oidn", "pt+oidn"), ("nrc_tiny", "pt+oidn")}
+    if importlib.util.find_spec("flip_evaluator"):
+        assert all(0 < r["flip"] < 1 for r in summary["rows"])
+    rows = {(r["config"], r["spp"]): r for r in summary["rows"] if r["mode"] == "single"}
     assert set(c for c, _ in rows) == {"pt", "pt+oidn", "nrc_tiny", "nrc_tiny+oidn"}
     for (config, spp), r in rows.items():
         if config.endswith("+oidn"):

@@ -7,21 +7,27 @@ Writes into ``--out`` (default ``docs/images/``):
   of the 1/16-resolution Disney cloud (CC BY-SA 3.0, Walt Disney Animation Studios, read from
   ``../shared/data/``), all under the default ``sun`` preset's lights. Each hero is a ``pt`` reference (``data/references/``, chunked and
   resumable) shown with its own auto exposure.
-* ``nrc_vs_pt.png`` and ``nrc_vs_pt.json``: the default scene, the path tracer and NRC at equal time per
-  frame beside the reference, every panel at the reference's exposure. NRC runs ``--frames`` frames from
-  an untrained cache at ``--spp`` spp per frame and shows its last frame; the path tracer gets the spp that
-  fit in NRC's median frame time (measured in the same run, with the same backend). The JSON holds every number in the titles.
-* ``sun.webp``: an animation of ``--anim-frames`` frames while the sun makes one turn about the vertical
-  axis, the path tracer (left, the same spp as above, a fresh render per frame) beside NRC (right, training
+* ``nrc_vs_pt.png`` and ``nrc_vs_pt.json``: the ``--comparison`` scene (``side_lit``, the headline scene type of
+  ``docs/results.md``: the Disney cloud side-lit by sun and sky at g 0.5; or ``default``), the path tracer and
+  NRC at equal time per frame, each raw and denoised by Intel Open Image Denoise (when ``pyoidn`` is
+  installed; the denoise time is added to both), beside the reference, every panel at the reference's
+  exposure. NRC runs ``--frames`` frames from an untrained cache at ``--spp`` spp per frame and shows its last
+  frame; the path tracer gets the spp that fit in NRC's median frame time (measured in the same run, with the
+  same backend). The JSON holds every number in the titles.
+* ``sun.webp``: an animation of ``--anim-frames`` frames of the default scene while the sun makes one turn about
+  the vertical axis, the path tracer (left, the comparison's spp when the comparison is the default scene,
+  else ``--anim-spp``; a fresh render per frame) beside NRC (right, training
   as the light moves, after ``--anim-warmup`` frames of training), one exposure (the reference's) for
   every frame.
-* ``figures.json``: the settings, timings and exposures of the run (whole-process wall time included).
+* ``figures.json``: the settings, timings and exposures of the run (whole-process wall time included); parts
+  skipped with ``--skip`` keep their entries from the previous run.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import json
 import math
 import platform
@@ -42,6 +48,12 @@ from nrc.io.png import auto_exposure, tonemap
 REPO = Path(__file__).resolve().parents[2]
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
 
+COMPARISONS: dict[str, tuple[str, list[str]]] = {
+    "side_lit": ("the Disney cloud side-lit by sun and sky, g 0.5 (speed_vs_error --preset side_lit)", [
+        "scene=sun_sky", "scene.volume.source=vdb", "scene.volume.path=" + str(SHARED_VDB),
+        "scene.volume.density_scale=0.6", "scene.volume.g=0.5", "scene.lights.0.direction=[-1,-0.25,0]"]),
+    "default": ("the default scene (scene=sun)", []),
+}
 RENDER_SEEDS = range(0, 1000)  # the seeds of the compared renders (pt 7, 11, 100 + frame; nrc 0)
 HEROES: dict[str, tuple[str, list[str]]] = {
     "cumulus": ("cumulus (the default scene)", []),
@@ -124,11 +136,11 @@ def _nrc_cfg(args: argparse.Namespace, frames: int, extra: list[str]):
 class _PathTracers:
     """Path tracers of the comparison scene with any spp, seed and lights (the scene is loaded once)."""
 
-    def __init__(self, args: argparse.Namespace) -> None:
+    def __init__(self, args: argparse.Namespace, scene: list[str] | None = None) -> None:
         from nrc.scene import load_scene
 
-        self.cfg = _cfg(["renderer=pt", f"scene.camera.width={args.width}", f"scene.camera.height={args.height}",
-                         f"renderer.backend={args.backend}"])
+        self.cfg = _cfg(["renderer=pt", *(scene or []), f"scene.camera.width={args.width}",
+                         f"scene.camera.height={args.height}", f"renderer.backend={args.backend}"])
         self.scene = load_scene(self.cfg.scene)
 
     def __call__(self, spp: int, seed: int, lights: tuple | None = None):
@@ -140,8 +152,17 @@ class _PathTracers:
         return PathTracer(scene, self.cfg)
 
 
-def comparison(args: argparse.Namespace, log: dict[str, Any]) -> float:
-    """The equal-time panel; returns the reference's exposure (used by the animation too)."""
+def _denoiser():
+    """``nrc.denoise.denoise``, or ``None`` without the ``denoise`` extra."""
+    if importlib.util.find_spec("pyoidn") is None:
+        return None
+    from nrc.denoise import denoise
+
+    return denoise
+
+
+def comparison(args: argparse.Namespace, log: dict[str, Any]) -> tuple[float, int]:
+    """The equal-time panel; returns the reference's exposure and the path tracer's spp."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -150,12 +171,13 @@ def comparison(args: argparse.Namespace, log: dict[str, Any]) -> float:
     from nrc.render.radiance_caching import NRCRenderer
     from nrc.scene import load_scene
 
-    ref, path = _reference(args, [f"scene.camera.width={args.width}", f"scene.camera.height={args.height}"],
+    scene_name, scene = COMPARISONS[args.comparison]
+    ref, path = _reference(args, [*scene, f"scene.camera.width={args.width}", f"scene.camera.height={args.height}"],
                            args.ref_spp)
     mask = medium_mask(ref.alpha) if ref.alpha is not None else None
     exposure = auto_exposure(ref.image, "aces")
 
-    nrc_cfg = _nrc_cfg(args, args.frames, [])
+    nrc_cfg = _nrc_cfg(args, args.frames, scene)
     frame_times: list[float] = []
     last: dict[str, np.ndarray] = {}
 
@@ -170,7 +192,7 @@ def comparison(args: argparse.Namespace, log: dict[str, Any]) -> float:
 
     # The path tracer's time per frame, measured now (after a warm-up that loads or compiles its step), sets its
     # spp: the most whose frame fits in NRC's median frame time (at least 1).
-    tracers = _PathTracers(args)
+    tracers = _PathTracers(args, scene)
     tracers(1, 7).render()
     spp, pt_time, pt_img = 0, 0.0, None
     for k in (1, 2, 3, 4, 6, 8, 12, 16, 24, 32):
@@ -187,22 +209,37 @@ def comparison(args: argparse.Namespace, log: dict[str, Any]) -> float:
                 "mean_over_reference_medium": float(img[m].mean() / ref.image[m].mean())}
 
     result = {
-        "scene": "the default (scene=sun)", "width": args.width, "height": args.height,
+        "scene": scene_name, "comparison": args.comparison, "scene_overrides": [_rel_override(o) for o in scene],
+        "width": args.width, "height": args.height,
         "reference": _rel(path), "reference_spp": args.ref_spp, "reference_rel_mse_floor": ref.rel_mse_floor,
+        "reference_rel_mse_floor_medium": ref.rel_mse_floor_medium,
         "exposure": exposure, "tonemap": "aces",
+        "nrc_settings": {"cache_target": nrc_cfg.renderer.cache_target,
+                         "training_image": [nrc_cfg.renderer.training.width, nrc_cfg.renderer.training.height]},
         "pt": {**score(pt_img), "spp": spp, "time_s": pt_time},
         "nrc": {**score(last["image"]), "spp_per_frame": args.spp, "frames": args.frames,
                 "time_per_frame_s": nrc_frame, "time_all_frames_s": nrc_total},
     }
     p, n = result["pt"], result["nrc"]
-    titles = [f"path tracer, {spp} spp ({pt_time:.2f} s)\nrelMSE {p['rel_mse_medium']:.3f}, "
-              f"mean {p['mean_over_reference_medium']:.2f}x ref",
-              f"NRC, frame {args.frames} ({nrc_frame:.2f} s/frame)\nrelMSE {n['rel_mse_medium']:.3f}, "
-              f"mean {n['mean_over_reference_medium']:.2f}x ref",
-              f"reference ({args.ref_spp} spp)\n"]
+    panels = [(pt_img, f"path tracer, {spp} spp ({pt_time:.2f} s)\nrelMSE {p['rel_mse_medium']:.3g}, "
+                       f"mean {p['mean_over_reference_medium']:.2f}x ref"),
+              (last["image"], f"NRC, frame {args.frames} ({nrc_frame:.2f} s/frame)\nrelMSE "
+                              f"{n['rel_mse_medium']:.3g}, mean {n['mean_over_reference_medium']:.2f}x ref")]
+    denoise = _denoiser()
+    if denoise is not None:
+        for key, img, label in (("pt_oidn", pt_img, f"path tracer + OIDN ({spp} spp)"),
+                                ("nrc_oidn", last["image"], "NRC + OIDN")):
+            t0 = time.perf_counter()
+            den = denoise(img)
+            result[key] = {**score(den), "time_denoise_s": time.perf_counter() - t0}
+            q = result[key]
+            panels.append((den, f"{label}\nrelMSE {q['rel_mse_medium']:.3g}, "
+                                f"mean {q['mean_over_reference_medium']:.2f}x ref"))
+        panels = [panels[0], panels[2], panels[1], panels[3]]
+    panels.append((ref.image, f"reference ({args.ref_spp} spp)\n"))
     h, w = ref.image.shape[:2]
-    fig, axes = plt.subplots(1, 3, figsize=(3 * w / 50, h / 50 + 0.6), dpi=100)
-    for ax, img, title in zip(axes, (pt_img, last["image"], ref.image), titles):
+    fig, axes = plt.subplots(1, len(panels), figsize=(len(panels) * w / 50, h / 50 + 0.6), dpi=100)
+    for ax, (img, title) in zip(axes, panels):
         ax.imshow(tonemap(img, exposure, "aces"))
         ax.set_title(title, fontsize=8)
         ax.axis("off")
@@ -211,7 +248,12 @@ def comparison(args: argparse.Namespace, log: dict[str, Any]) -> float:
     plt.close(fig)
     (args.out / "nrc_vs_pt.json").write_text(json.dumps(result, indent=2))
     log["comparison"] = result
-    return exposure
+    return exposure, spp
+
+
+def _rel_override(override: str) -> str:
+    """An override with this machine's path of the shared data written relative to the repo."""
+    return override.replace(str(REPO.parent) + "/", "../")
 
 
 def animation(args: argparse.Namespace, exposure: float, spp: int, log: dict[str, Any]) -> None:
@@ -270,6 +312,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--ref-spp", type=int, default=4096)
     ap.add_argument("--chunk-spp", type=int, default=64)
     ap.add_argument("--ref-dir", type=Path, default=REPO / "data" / "references", help="cache of the references")
+    ap.add_argument("--comparison", choices=sorted(COMPARISONS), default="side_lit",
+                    help="scene of the equal-time comparison")
+    ap.add_argument("--anim-spp", type=int, default=6,
+                    help="path tracer spp of the animation when the comparison is not the default scene")
     ap.add_argument("--anim-frames", type=int, default=36, help="recorded frames (one full turn of the sun)")
     ap.add_argument("--anim-warmup", type=int, default=10, help="NRC frames trained before recording")
     ap.add_argument("--backend", default="compiled", help="pt backend of the references (and NRC)")
@@ -278,14 +324,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args.out.mkdir(parents=True, exist_ok=True)
     skip = {s for s in args.skip.split(",") if s}
     start = time.perf_counter()
-    log: dict[str, Any] = {"heroes": {}, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads, "
-                                                    f"torch {torch.__version__}"}
+    previous = args.out / "figures.json"
+    log: dict[str, Any] = json.loads(previous.read_text()) if skip and previous.is_file() else {"heroes": {}}
+    log["machine"] = f"{platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
+    log["skipped"] = sorted(skip)
     if "heroes" not in skip:
         heroes(args, log)
-    if "comparison" not in skip or "animation" not in skip:
-        exposure = comparison(args, log)
-        if "animation" not in skip:
-            animation(args, exposure, log["comparison"]["pt"]["spp"], log)
+    if "comparison" not in skip:
+        exposure, spp = comparison(args, log)
+    if "animation" not in skip:
+        if "comparison" in skip or args.comparison != "default":
+            # the animation is of the default scene: its reference's exposure (cached), --anim-spp
+            ref, _ = _reference(args, [f"scene.camera.width={args.width}", f"scene.camera.height={args.height}"],
+                                args.ref_spp)
+            exposure, spp = auto_exposure(ref.image, "aces"), args.anim_spp
+        animation(args, exposure, spp, log)
     log["time_total_s"] = time.perf_counter() - start
     (args.out / "figures.json").write_text(json.dumps(log, indent=2))
     print(json.dumps({k: v for k, v in log.items() if k != "comparison"}, indent=2))

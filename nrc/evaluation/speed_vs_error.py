@@ -56,7 +56,7 @@ import torch
 REPO = Path(__file__).resolve().parents[2]  # the checkout (data/references, outputs/ and git live there)
 
 from nrc.config import CONF_DIR, code_version, compose, resolve_device  # noqa: E402
-from nrc.evaluation.metrics import (mean_ratio, mean_relative_bias, medium_mask, mse,  # noqa: E402
+from nrc.evaluation.metrics import (hdr_flip, mean_ratio, mean_relative_bias, medium_mask, mse,  # noqa: E402
                                    normalised_rel_mse, rel_mse, relative_variance)
 from nrc.evaluation.reference import (REF_SEED, check_independent, default_reference_path, read_reference,  # noqa: E402
                                      render_reference)
@@ -103,14 +103,14 @@ CONFIGS: dict[str, list[str]] = {
                                      "transmittance=biased_raymarch"],
 }
 DEFAULT_CONFIGS = list(CONFIGS)
-# CPU scale: a 64 x 64 training image (4,096 training paths, 16,384 records per frame) instead of the
-# 128 x 128 default; Müller trains on ~3 % of a 1080p frame's pixels, 4,096 paths are 28 % of 160 x 90.
-NRC_DEFAULTS = ["renderer.training.width=64", "renderer.training.height=64", "renderer.log.tensorboard=false"]
+# The renderer's own defaults (the training budget sized to the image: renderer.training.width/height=auto);
+# runs before 2026-12-02 used a 64 x 64 training image here (--nrc-overrides shows what a run used).
+NRC_DEFAULTS = ["renderer.log.tensorboard=false"]
 SEED_BASE = 1000  # seeds of the scored renders; references use seeds >= 1e6 (nrc.evaluation.reference.REF_SEED)
 FIELDS = [
     "mode", "config", "renderer", "spp", "frames", "time_s", "cpu_s", "rel_mse", "rel_mse_medium", "rel_mse_corr",
     "rel_mse_medium_corr", "bias", "bias_medium", "mean_ratio", "mean_ratio_medium", "rel_mse_norm",
-    "rel_mse_norm_medium", "denoised",
+    "rel_mse_norm_medium", "flip", "denoised",
     "variance", "variance_medium", "mse", "mse_medium", "renders", "rel_mse_floor", "rel_mse_floor_medium",
 ]
 
@@ -156,9 +156,18 @@ class Scorer:
             row["mean_ratio" + suffix] = float(np.mean([mean_ratio(x, self.ref, m) for x in xs]))
             row["rel_mse_norm" + suffix] = float(np.mean([normalised_rel_mse(x, self.ref, m, mask) for x in xs]))
             row["variance" + suffix] = relative_variance(xs, self.ref, m) if len(xs) >= 2 else None
+        row["flip"] = _flip(xs, self.ref)
         row["rel_mse_floor"] = self.floor
         row["rel_mse_floor_medium"] = self.floor_medium
         return row
+
+
+def _flip(xs: np.ndarray, ref: np.ndarray) -> float | None:
+    """Mean HDR-FLIP over the renders (whole image), or ``None`` without the ``flip`` extra."""
+    try:
+        return float(np.mean([hdr_flip(x, ref) for x in xs]))
+    except ImportError:
+        return None
 
 
 def with_spp_seed(scene, spp: int, seed: int):
@@ -235,7 +244,8 @@ def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
                     cpu.append(now - clock["c"])
                 clock["c"] = time.process_time()
 
-            nrc_run(scene, cfg, spp, SEED_BASE + spp, args.warmup + args.frames, False, cb)
+            for k in range(getattr(args, "nrc_repeats", 1)):  # independent runs (their own seeds), frames pooled
+                nrc_run(scene, cfg, spp, SEED_BASE + spp + 7919 * k, args.warmup + args.frames, False, cb)
             emit(spp, frames, times, cpu)
     return rows
 
@@ -259,6 +269,23 @@ def denoised_row(row: dict[str, Any], frames: list[np.ndarray], scorer: Scorer) 
     twin["cpu_s"] = None if row.get("cpu_s") is None else row["cpu_s"] + float(np.median(cpu))
     twin["time_denoise_s"] = float(np.median(times))
     return twin
+
+
+def all_crossovers(rows: list[dict[str, Any]], baseline: list[str] | None) -> list[dict[str, Any]]:
+    """Accumulated crossovers against every baseline the rows allow (as :func:`all_ratios`): raw NRC against the
+    raw path tracers; with denoised twins NRC + OIDN and raw NRC against the path tracers + OIDN."""
+    if not baseline:
+        return []
+    raw = [r for r in rows if not r.get("denoised")]
+    den = [r for r in rows if r.get("denoised")]
+    out = [{**c, "baseline": "pt"} for c in crossovers(raw, baseline)]
+    den_base = [b + DENOISED for b in baseline]
+    if any(r["config"] in den_base and r["mode"] == "accumulate" for r in den):
+        out += [{**c, "baseline": "pt" + DENOISED} for c in crossovers(den, den_base)]
+        pt_den = [r for r in den if r["renderer"] == "pt"]
+        out += [{**c, "baseline": "pt" + DENOISED}
+                for c in crossovers(pt_den + [r for r in raw if r["renderer"] != "pt"], den_base)]
+    return out
 
 
 def all_ratios(rows: list[dict[str, Any]], baseline: list[str] | None, clock: str = "time_s") -> list[dict[str, Any]]:
@@ -330,6 +357,9 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
                "time_s": float(np.mean([r[n][0] for r in seqs])), **scorer.score([r[n][1] for r in seqs])}
         rows.append(row)
         log(row)
+        if args.denoise:  # the running mean denoised at this point (its time + one denoise)
+            rows.append(denoised_row(row, [r[n][1] for r in seqs], scorer))
+            log(rows[-1])
     return rows
 
 
@@ -513,13 +543,13 @@ def markdown(rows, ratios, cross, meta) -> str:
         lines += [f"**{title}**", "",
                   "| config | spp/frame | frames | time (s) | CPU time (s) | relMSE medium | relMSE all | "
                   "relMSE medium, normalised | mean / reference, medium | rel. bias medium | rel. variance medium "
-                  "| renders |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| HDR-FLIP | renders |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in sel:
             lines.append(f"| {r['config']} | {r['spp']} | {r['frames']} | {r['time_s']:.3g} | {fmt(r.get('cpu_s'))} | "
                          f"{fmt(r.get('rel_mse_medium'))} | {fmt(r['rel_mse'])} | {fmt(r.get('rel_mse_norm_medium'))} | "
                          f"{fmt(r.get('mean_ratio_medium'))} | {fmt(r.get('bias_medium'))} | "
-                         f"{fmt(r.get('variance_medium'))} | {r['renders']} |")
+                         f"{fmt(r.get('variance_medium'))} | {fmt(r.get('flip'))} | {r['renders']} |")
         lines.append("")
     if ratios:
         pts = ", ".join(f"`{n}`" for n in baseline_names(meta["baseline"]))
@@ -551,11 +581,11 @@ def markdown(rows, ratios, cross, meta) -> str:
         lines += ["**Crossover (accumulated, static camera)**: the time after which the unbiased PT's running mean "
                   f"has the lower {cross[0]['metric']} (compared from PT's first frame on; \"<=\": PT is already "
                   "ahead with its first frame).", "",
-                  "| config | crossover (s) | measured up to (s) |", "|---|---:|---:|"]
+                  "| config | against | crossover (s) | measured up to (s) |", "|---|---|---:|---:|"]
         for c in cross:
             t = "none within the budget" if c["crossover_time_s"] is None else \
                 ("<= " if c.get("crossover_at_or_before") else "") + fmt(c["crossover_time_s"])
-            lines.append(f"| {c['config']} | {t} | {fmt(c['max_time_s'])} |")
+            lines.append(f"| {c['config']} | {c.get('baseline', 'pt')} | {t} | {fmt(c['max_time_s'])} |")
         lines.append("")
     return "\n".join(lines)
 
@@ -617,6 +647,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=3, help="independent pt frames per spp (single mode)")
     p.add_argument("--warmup", type=int, default=10, help="NRC training frames before scoring (single mode)")
     p.add_argument("--frames", type=int, default=4, help="scored NRC frames (single mode)")
+    p.add_argument("--nrc-repeats", type=int, default=1,
+                   help="independent NRC runs per configuration (single mode; their scored frames are pooled: the "
+                        "spread between runs of the online training shows in the variance)")
     p.add_argument("--acc-max-frames", type=int, default=256, help="most frames accumulated (accumulate mode)")
     p.add_argument("--acc-budget-s", type=float, default=60.0, help="render seconds per sequence (accumulate)")
     p.add_argument("--acc-repeats", type=int, default=2, help="independent sequences (accumulate mode)")
@@ -627,7 +660,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--nrc-overrides", default=",".join(NRC_DEFAULTS),
                    help="Hydra overrides applied to every nrc configuration before its own (comma-separated)")
     p.add_argument("--denoise", action="store_true",
-                   help="also score every single-frame configuration denoised by OIDN (time + denoise time)")
+                   help="also score every configuration denoised by OIDN (single frames; accumulated: the running "
+                        "mean at each point), time + denoise time")
     p.add_argument("--reference", type=Path, default=None)
     p.add_argument("--ref-spp", type=int, default=512)
     p.add_argument("--ref-chunk", type=int, default=64)
@@ -675,7 +709,7 @@ def main(argv: list[str] | None = None) -> int:
     def finish() -> tuple[dict, list, list]:
         """Ratios, crossovers and outputs from the rows so far (written after every configuration)."""
         baseline = [n for n, o in configs.items() if _renderer_of(o) == "pt" and n not in skipped] or None
-        cross = crossovers(rows, baseline) if baseline else []
+        cross = all_crossovers(rows, baseline)
         meta = {
             # paths relative to the repo root (../shared/...), never this machine's
             "scene": " ".join(args.scene_overrides).replace(str(REPO.parent) + "/", "../") or "defaults", "width": cam.width, "height": cam.height,
@@ -711,7 +745,7 @@ def main(argv: list[str] | None = None) -> int:
         log(f"equal-time relMSE ratio {q['config']}/{q.get('baseline', baseline)} (spp {q['spp']}): "
             f"medium {fmt(q.get('ratio_rel_mse_medium'), 2)}, all {fmt(q.get('ratio_rel_mse'), 2)}")
     for c in cross:
-        log(f"crossover {c['config']} vs {baseline}: {fmt(c['crossover_time_s'])} s")
+        log(f"crossover {c['config']} vs {c.get('baseline', baseline)}: {fmt(c['crossover_time_s'])} s")
     log(f"wrote {args.out}/speed_vs_error.{{csv,md,png}} and summary.json in {meta['wall_time_s']:.0f} s")
     return 0
 
@@ -724,8 +758,8 @@ def replot(out: Path) -> int:
     meta.setdefault("git", "unknown")
     add_corrected(rows, meta["rel_mse_floor"], meta["rel_mse_floor_medium"])
     # every pt configuration of the run is part of the baseline (older summaries named only the first)
-    baseline = meta["baseline"] = list(dict.fromkeys(r["config"] for r in rows if r["renderer"] == "pt")) or None
-    write_outputs(out, rows, all_ratios(rows, baseline), crossovers(rows, baseline), meta)
+    baseline = meta["baseline"] = list(dict.fromkeys(r["config"] for r in rows if r["renderer"] == "pt" and not r.get("denoised"))) or None
+    write_outputs(out, rows, all_ratios(rows, baseline), all_crossovers(rows, baseline), meta)
     print(f"rewrote {out}")
     return 0
 

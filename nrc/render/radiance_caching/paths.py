@@ -14,6 +14,14 @@ therefore stores the radiance scattered at ``x`` towards ``-d`` (albedo included
 integral of phase(d, w) L_i(x, w) dw``. Paths that leave the medium never query the cache; pixels whose
 camera ray never scatters only see the environment.
 
+``cache_target=indirect`` (``renderer.cache_target``) moves the direct light out of the cache: the cache
+stores ``L_s`` minus the single-scattered light of the lights (next-event estimation with MIS and the
+environment reached by phase sampling, both at ``x``), and a terminating path adds its own next-event
+estimate by light sampling alone (weight 1, no MIS: the path does not go on to find the environment by phase
+sampling) besides ``beta x cache``. A record's target is then ``T_j - D_j`` with ``D_j`` its own direct light
+(kept in separate rows of ``acc``). The cache no longer has to reproduce the phase function's peak towards a
+sun (at g 0.95, a 3-degree lobe); next-event estimation does that exactly.
+
 Training paths continue ``extra_vertices`` real vertices past the vertex where the rule would stop a
 render path, then terminate into the cache (self-training); a fraction of them (``unbiased_fraction``,
 drawn per path) never does and runs to ``max_scatter`` (unbiased suffixes). Vertex ``j = 1..V`` of a
@@ -83,7 +91,8 @@ class FrameTrace:
 
     ``query_*`` are the cache terminations: position, unit direction of travel, weight ``(Q, 3)``,
     destination row of ``acc`` and the id of the path (render samples ``0..P*spp-1`` in pixel order,
-    then training paths). ``rec_*`` are ``(N_train * V, ...)``: record position, direction and whether
+    then training paths). ``direct`` (``cache_target=indirect`` only) is each record's own direct light, kept out
+    of its ``acc`` row. ``rec_*`` are ``(N_train * V, ...)``: record position, direction and whether
     the vertex exists and is not terminal. ``scattered[k]``: training path ``k`` had a real collision.
     """
 
@@ -100,6 +109,7 @@ class FrameTrace:
     scattered: Tensor
     counts: dict[str, int] = field(default_factory=dict)
     timers: dict[str, float] = field(default_factory=dict)
+    direct: Tensor | None = None  # cache_target=indirect: (N_train * V, 3) each record's direct light
 
 
 class NRCPathTracer:
@@ -119,7 +129,7 @@ class NRCPathTracer:
     def __init__(self, scene: Scene, transmittance: object, termination: Termination, records_per_path: int,
                  extra_vertices: int, slots: int, shadow_batch: int, brick: object = "auto",
                  free_flight: str = "brick", backend: str = "eager", steps_per_call: int = 1,
-                 compile_min_samples: int = 0) -> None:
+                 compile_min_samples: int = 0, cache_target: str = "full") -> None:
         self.scene = scene
         self.device = scene.device
         self.transmittance = transmittance
@@ -128,6 +138,7 @@ class NRCPathTracer:
         self.extra_vertices = extra_vertices
         self.slots = slots
         self.shadow_batch = shadow_batch
+        self.cache_target = cache_target
         self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples)
         self._cores: dict = {}
         self.core = self._core(RandomSource.counter_uniforms)
@@ -140,7 +151,7 @@ class NRCPathTracer:
             s = self.scene
             self._cores[uniforms] = build_core(
                 s.grid, LightSampler(s.lights, self.device), s.albedo, s.g, s.integrator.max_scatter,
-                self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V),
+                self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V, self.cache_target),
                 termination=self.termination, uniforms=uniforms, inline_shadows=False)
             self._cores[uniforms].warm_fraction = 1 / 12  # see Core.warm_fraction
         return self._cores[uniforms]
@@ -179,17 +190,19 @@ class NRCPathTracer:
         core = self._core(rng.counter_uniforms)
         n_pixels = ps.camera.num_pixels
         total = ps.n_render + ps.n_train
-        n_rows = n_pixels + ps.n_train * V + 1
+        discard = n_pixels + ps.n_train * V
+        indirect = self.cache_target == "indirect"
+        n_rows = discard + 1 + (ps.n_train * V if indirect else 0)
         acc = torch.zeros(n_rows, 3, device=dev)
         machine, self.backend, self.backend_reason = core.choose(total * self.frames)
         hv = Harvest(n_pixels, ps.n_render, torch.zeros(ps.n_train * V, 3, device=dev),
                      torch.zeros(ps.n_train * V, 3, device=dev),
                      torch.zeros(ps.n_train * V, dtype=torch.bool, device=dev),
-                     torch.zeros(ps.n_train, dtype=torch.bool, device=dev))
+                     torch.zeros(ps.n_train, dtype=torch.bool, device=dev), discard + 1 if indirect else None)
         shadow = core.shadow_queue(machine, self.shadow_batch, rng.generator)
         wf = Wavefront(machine, core.inputs_for(lights), lights, self.slots, shadow, hv)
         layout = machine.step.layout
-        wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, n_rows - 1), acc)
+        wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, discard), acc)
         counts = dict(wf.counts)
         timers = {"trace_" + k: v for k, v in wf.timers.items()}
         timers["compile"] = core.last_startup_s
@@ -205,4 +218,5 @@ class NRCPathTracer:
             query_w=cat("w", (0, 3), torch.float32), query_dest=cat("dest", (0,), torch.long),
             query_pid=cat("pid", (0,), torch.long), rec_x=hv.rec_x, rec_d=hv.rec_d, rec_valid=hv.rec_valid,
             scattered=hv.scattered, counts=counts, timers=timers,
+            direct=acc[discard + 1:] if indirect else None,
         )

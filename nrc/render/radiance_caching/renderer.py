@@ -60,7 +60,8 @@ from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 from nrc.transport.rng import RandomSource
 from nrc.render.wavefront.machine import compiled_graphs
-from nrc.render.radiance_caching.training_set import frame_records, training_positions, training_targets
+from nrc.render.radiance_caching.training_set import (auto_training_size, frame_records, medium_pixels,
+                                                      training_positions, training_targets)
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.lights import DirectionalLight
@@ -143,12 +144,19 @@ class NRCRenderer:
             cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed)
         self.batch_filter = make_batch_filter(cfg.batch_filter)
         tr = st.training
+        self.medium_pixels: int | None = None
+        if tr.auto:  # the training budget sized to the pixels that see the medium (training_set.py)
+            self.medium_pixels = medium_pixels(scene.camera, scene.grid)
+            w, h = auto_training_size(self.medium_pixels, scene.camera.width, scene.camera.height,
+                                      tr.paths_per_pixel, tr.min_paths, tr.max_paths)
+            tr = replace(tr, width=w, height=h)
+            self.settings = st = replace(st, training=tr)
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(tr.ring_buffer, self.device)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
         self.tracer = NRCPathTracer(scene, self.transmittance, st.termination, tr.records_per_path,
                                     tr.extra_vertices, st.slots, st.shadow_batch, st.brick, st.free_flight,
-                                    st.backend, st.steps_per_call, st.compile_min_samples)
+                                    st.backend, st.steps_per_call, st.compile_min_samples, st.cache_target)
         self.tracer.frames = self.frames
         self.lights = LightSampler(scene.lights, self.device)
         self.reference = self._load_reference(st.reference)
@@ -234,7 +242,11 @@ class NRCRenderer:
         t2 = time.perf_counter()
 
         V = tr.records_per_path
-        targets = training_targets(acc[n_pix:n_pix + ps.n_train * V], ps.n_train, V, scene.albedo)
+        rows = acc[n_pix:n_pix + ps.n_train * V]
+        if trace.direct is None:
+            targets = training_targets(rows, ps.n_train, V, scene.albedo)
+        else:  # cache_target=indirect: each record's own direct light stays out of its target
+            targets = training_targets(rows + trace.direct, ps.n_train, V, scene.albedo) - trace.direct
         records, valid = frame_records(trace.rec_x, trace.rec_d, targets, trace.rec_valid)
         mask = torch.zeros(tr.n_paths, dtype=torch.bool, device=self.device)
         mask[self.train_order] = trace.scattered
@@ -359,7 +371,9 @@ class NRCRenderer:
         metrics: dict[str, Any] = {
             "renderer": self.name, "frames": self.frames, "first_frame": start, "spp": self.scene.integrator.spp,
             "accumulate": st.accumulate, "transmittance": self.transmittance.name,
-            "termination": st.termination.rule, "time_frames_s": elapsed,
+            "termination": st.termination.rule, "cache_target": st.cache_target, "time_frames_s": elapsed,
+            "training_image": [st.training.width, st.training.height], "training_auto": st.training.auto,
+            "medium_pixels": self.medium_pixels,
             "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,
             "compiled_graphs_in_process": compiled_graphs() if self.tracer.backend == "compiled" else None,
             "cache_parameters": self.cache.n_parameters if hasattr(self.cache, "n_parameters") else None,

@@ -14,20 +14,30 @@ from nrc.errors import ConfigError
 from nrc.render.radiance_caching.termination import Termination
 
 ANIMATIONS = ("none", "orbit", "sun")
+CACHE_TARGETS = ("full", "indirect")
 
 
 @dataclass(frozen=True)
 class TrainingSettings:
-    width: int  # training image width (training paths per row)
-    height: int  # training image height
+    width: int | None  # training image width (training paths per row); None: auto (sized to the medium)
+    height: int | None  # training image height; None: auto
     records_per_path: int  # V
     extra_vertices: int  # vertices a training path goes past the render path's stop
     unbiased_fraction: float  # probability that a training path never terminates into the cache
     ring_buffer: int  # records kept from earlier frames
     query_weights: str = "raw"  # cache weights of the training paths' terminal queries: ema | raw
+    paths_per_pixel: float = 1.0  # auto: training paths per pixel that sees the medium
+    min_paths: int = 16384  # auto: the floor
+    max_paths: int = 65536  # auto: the cap
+
+    @property
+    def auto(self) -> bool:
+        return self.width is None
 
     @property
     def n_paths(self) -> int:
+        if self.width is None or self.height is None:
+            raise ValueError("the auto training image is sized by the renderer (training_set.auto_training_size)")
         return self.width * self.height
 
 
@@ -43,6 +53,7 @@ class NRCSettings:
     brick: int | str
     free_flight: str
     termination: Termination
+    cache_target: str  # full | indirect (nrc.render.radiance_caching.paths)
     training: TrainingSettings
     inference_batch: int
     accumulate: bool
@@ -69,14 +80,17 @@ class NRCSettings:
             brick=cfg.get_raw("brick", "auto"),  # validated by nrc.render.wavefront.wavefront_majorants
             free_flight=cfg.get_choice("free_flight", ["brick", "global"], "brick"),
             termination=Termination.from_config(cfg.block("termination")),
+            cache_target=cfg.get_choice("cache_target", CACHE_TARGETS, "full"),
             training=TrainingSettings(
-                width=tr.get_int("width", 128, lo=1),
-                height=tr.get_int("height", 128, lo=1),
+                **_training_size(tr),
                 records_per_path=tr.get_int("records_per_path", 4, lo=1),
                 extra_vertices=tr.get_int("extra_vertices", 3, lo=0),
                 unbiased_fraction=tr.get_float("unbiased_fraction", 0.25, lo=0.0, hi=1.0),
                 ring_buffer=tr.get_int("ring_buffer", 1 << 18, lo=1),
                 query_weights=tr.get_choice("query_weights", ["raw", "ema"], "raw"),
+                paths_per_pixel=tr.get_float("paths_per_pixel", 1.0, lo=0.0, lo_open=True),
+                min_paths=tr.get_int("min_paths", 16384, lo=1),
+                max_paths=tr.get_int("max_paths", 65536, lo=1),
             ),
             inference_batch=inf.get_int("batch_size", 1 << 14, lo=1),
             accumulate=cfg.get_bool("accumulate", False),
@@ -90,10 +104,25 @@ class NRCSettings:
         )
         for block in (tr, inf, anim, log, cfg):
             block.finish()
+        t = settings.training
+        if t.min_paths > t.max_paths:
+            raise ConfigError(f"renderer.training.min_paths={t.min_paths} exceeds max_paths={t.max_paths}")
         if settings.accumulate and settings.animate != "none":
             raise ConfigError(f"renderer.accumulate=true averages the frames of a static scene; it cannot be used "
                               f"with renderer.animate.mode={settings.animate}")
         return settings
+
+
+def _training_size(tr: ConfigReader) -> dict[str, Any]:
+    """``training.width`` and ``training.height``: both ``auto`` or both integers >= 1."""
+    raw = {k: tr.get_raw(k, "auto") for k in ("width", "height")}
+    autos = [k for k, v in raw.items() if v == "auto"]
+    if len(autos) == 2:
+        return {"width": None, "height": None}
+    if autos:
+        raise ConfigError(f"renderer.training.width and height must both be auto or both integers, got "
+                          f"width={raw['width']!r} height={raw['height']!r}")
+    return {"width": tr.get_int("width", lo=1), "height": tr.get_int("height", lo=1)}
 
 
 CHECKPOINT_SECONDS = 60.0  # checkpoint_every: auto writes at least this often while rendering

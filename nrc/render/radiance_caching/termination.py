@@ -11,17 +11,16 @@ Both rules are decided at a real scattering vertex, numbered ``n = 1, 2, ...`` a
     direction that led to ``x_i`` (world units, pdf per steradian). The path terminates at the first
     vertex ``n >= min_vertices`` where ``S^2 > c * a0`` (``spread_c``, 0.01 in Müller et al.).
 
+The rules run in the transport step's vertex (:meth:`nrc.render.wavefront.step.Transport.vertex`), whose
+numbers come from this dataclass through the step's parameter vector (changing them recompiles nothing).
+
 Termination never changes the estimator's expectation when the cache is exact (the cached value at a
 vertex is the expected remainder of the path), so neither rule reweights the throughput.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-
-import torch
-from torch import Tensor
 
 from nrc.config import ConfigReader
 
@@ -47,23 +46,3 @@ class Termination:
         )
         cfg.finish()
         return term
-
-    @staticmethod
-    def spread_update(n: Tensor, x: Tensor, x_prev: Tensor, pdf_prev: Tensor, spread: Tensor,
-                      a0: Tensor) -> tuple[Tensor, Tensor]:
-        """``(spread, a0)`` after reaching vertex ``n`` at ``x`` from ``x_prev`` along a direction of pdf ``pdf_prev``.
-
-        At the first vertex ``x_prev`` is the camera position and the pdf is ignored.
-        """
-        dist2 = ((x - x_prev) ** 2).sum(-1)
-        first = n == 1
-        a0 = torch.where(first, dist2 / (4.0 * math.pi), a0)
-        grown = spread + torch.sqrt(dist2 / pdf_prev.clamp(min=1e-30))
-        return torch.where(first, torch.zeros_like(spread), grown), a0
-
-    def fires(self, n: Tensor, u: Tensor, spread: Tensor, a0: Tensor) -> Tensor:
-        """Bool ``(N,)``: the rule says "stop here" at vertex ``n`` (``u`` uniform in [0, 1), count rule only)."""
-        eligible = n >= self.min_vertices
-        if self.rule == "count":
-            return eligible & (u >= self.p_continue)
-        return eligible & (spread * spread > self.spread_c * a0)

@@ -8,9 +8,16 @@
   ``order[k]`` and owns records ``[k V, (k + 1) V)``, so a filter batch of pixels ``[a, b)`` is the
   record slice ``[a V, b V)``.
 * Targets follow ``T_j = acc_j + albedo x T_{j+1}`` (see :mod:`nrc.render.radiance_caching.paths`).
+* The training budget (``renderer.training.width/height: auto``) is sized to the pixels that see the medium
+  (:func:`medium_pixels`, :func:`auto_training_size`): training paths = ``paths_per_pixel`` x those pixels,
+  clamped to ``[min_paths, max_paths]``, on a training image of the screen's aspect whose sides are multiples
+  of :data:`SIDE_MULTIPLE` (every batch filter divides them); records per frame are ``records_per_path``
+  times the paths.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -50,3 +57,42 @@ def frame_records(rec_x: Tensor, rec_d: Tensor, targets: Tensor, rec_valid: Tens
     valid = rec_valid & torch.isfinite(targets).all(dim=1)
     targets = torch.where(valid[:, None], targets, torch.zeros_like(targets))
     return TrainingRecords(rec_x, rec_d, targets), valid
+
+
+SIDE_MULTIPLE = 16  # auto training image sides are multiples of this (batch filters split them evenly)
+MEDIUM_SAMPLES = 48  # density lookups along a pixel's centre ray when counting the pixels that see the medium
+
+
+def medium_pixels(camera, grid, samples: int = MEDIUM_SAMPLES, chunk: int = 1 << 15) -> int:
+    """Pixels whose centre ray meets nonzero density: ``samples`` stratified midpoints of the ray's segment
+    inside the grid's box are looked up (a medium thinner than the spacing can be missed; the count sizes a
+    budget, it is not an estimator). Memory: ``chunk x samples`` lookups at a time."""
+    n = camera.num_pixels
+    dev = grid.device
+    count = 0
+    mid = (torch.arange(samples, device=dev, dtype=torch.float32) + 0.5) / samples
+    for start in range(0, n, chunk):
+        pix = torch.arange(start, min(n, start + chunk), device=dev)
+        o, d = camera.generate_rays(pix, torch.full((len(pix), 2), 0.5, device=dev))
+        t0, t1 = grid.box.intersect(o, d)
+        hit = t1 > t0
+        if not bool(hit.any()):
+            continue
+        o, d, t0, t1 = o[hit], d[hit], t0[hit], t1[hit]
+        t = t0[:, None] + (t1 - t0)[:, None] * mid[None]
+        x = o[:, None, :] + t[..., None] * d[:, None, :]
+        dens = grid.lookup(x.reshape(-1, 3)).reshape(len(o), samples)
+        count += int((dens > 0).any(dim=1).sum())
+    return count
+
+
+def auto_training_size(n_medium: int, image_width: int, image_height: int, paths_per_pixel: float,
+                       min_paths: int, max_paths: int) -> tuple[int, int]:
+    """``(width, height)`` of the auto training image: about ``clamp(paths_per_pixel x n_medium, min_paths,
+    max_paths)`` paths, the image's aspect, sides multiples of :data:`SIDE_MULTIPLE` (at least one multiple)."""
+    paths = min(max(paths_per_pixel * n_medium, min_paths), max_paths)
+    aspect = image_width / image_height
+    m = SIDE_MULTIPLE
+    width = max(1, round(math.sqrt(paths * aspect) / m)) * m
+    height = max(1, round(paths / width / m)) * m
+    return width, height

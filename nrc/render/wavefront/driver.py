@@ -9,7 +9,10 @@ vertex run :meth:`Machine.vertex` (a subset: gathered, stepped, scattered back);
 estimator without a per-step form are queued and traced in batches of ``shadow_batch`` rays.
 
 Accumulator rows: row 0 of a slot is ``dest`` (a pixel, or a training path's discard row); rows ``j >= 1``
-(``nrc``) are training records, ``n_pixels + rec_base + j - 1``.
+(``nrc``) are training records, ``n_pixels + rec_base + j - 1``. With ``cache_target=indirect`` the direct
+light of a recorded vertex (its next-event estimate, the MIS-weighted environment its sampled direction
+reaches) goes to a second block of record rows (:attr:`Harvest.direct_base`), so that the caller can take it
+out of the record's target.
 
 Memory: the state (``Layout``), the shadow queue (at most ``shadow_batch`` + one vertex pass of requests)
 and the caller's accumulator; independent of image size and spp.
@@ -82,6 +85,9 @@ class Harvest:
     rec_d: Tensor
     rec_valid: Tensor
     scattered: Tensor  # (N_train,) bool
+    # cache_target=indirect: accumulator row of record 0's direct light (next-event estimate and MIS-weighted
+    # environment of a recorded vertex go to direct_base + record instead of the record's row); None: full
+    direct_base: int | None = None
     queries: dict[str, list[Tensor]] = field(default_factory=lambda: {k: [] for k in ("x", "d", "w", "dest", "pid")})
 
 
@@ -132,8 +138,13 @@ class Wavefront:
                 pdf = Fd[ly.f("pdf")][e]
                 w = torch.where(pdf > 0, power_heuristic(pdf, self.lights.env_pdf(d)), torch.ones_like(pdf))
                 Ie = Id[:, e]
-                acc.index_add_(0, self._rows(Ie, self._current_row(Ie)),
-                               Fd[ly.f("beta")][:, e].T * self.lights.env_radiance(d) * w[:, None])
+                rows = self._rows(Ie, self._current_row(Ie))
+                if self.harvest is not None and self.harvest.direct_base is not None:
+                    # escaped from a recorded vertex n (a training path's 1..V): that record's direct light
+                    n, base = Ie[ly.i("n")], Ie[ly.i("rec_base")]
+                    direct = (base >= 0) & (n >= 1) & (n <= ly.rows - 1)
+                    rows = torch.where(direct, self.harvest.direct_base + base + n - 1, rows)
+                acc.index_add_(0, rows, Fd[ly.f("beta")][:, e].T * self.lights.env_radiance(d) * w[:, None])
         c = self.counts
         c["tracking_steps"] += int(Id[ly.i("cnt")].sum())
         c["shadow_steps"] += int(Id[ly.i("n_shadow_steps")].sum())
@@ -174,9 +185,12 @@ class Wavefront:
             qd = (Is[ly.i("shadow")] == 2).nonzero().squeeze(1)
             if len(qd):
                 Iq = Is[:, qd]
+                rows = self._rows(Iq, self._current_row(Iq))
+                if hv is not None and hv.direct_base is not None:  # a recorded vertex's own next-event estimate
+                    rec = Iq[ly.i("rec")]
+                    rows = torch.where(rec >= 0, hv.direct_base + rec, rows)
                 self.shadow.push(Fs[ly.f("o")][:, qd].T.contiguous(), Fs[ly.f("wi")][:, qd].T.contiguous(),
-                                 Fs[ly.f("tse")][qd], Fs[ly.f("csh")][:, qd].T, self._rows(Iq, self._current_row(Iq)),
-                                 acc)
+                                 Fs[ly.f("tse")][qd], Fs[ly.f("csh")][:, qd].T, rows, acc)
                 Is[ly.i("shadow"), qd] = 0
         F.index_copy_(1, sc, Fs)
         I.index_copy_(1, sc, Is)

@@ -12,7 +12,8 @@ eagerly or ``torch.compile``'d (the same code; :mod:`nrc.render.wavefront.machin
     allowed vertex that collides ends the path.
 :meth:`Transport.vertex` -- the slots waiting at a real collision (a few percent; the driver runs it on that
     subset). ``nrc`` first applies the termination rule: a terminating path becomes a cache query
-    (``QUERY``), a training path records the vertex. Then both renderers scatter: throughput x albedo, a
+    (``QUERY``), a training path records the vertex; with ``cache_target=indirect`` a terminating path still
+    requests next-event estimation, weighted 1 (light sampling alone). Then both renderers scatter: throughput x albedo, a
     next-event request (one light chosen uniformly; its shadow ray starts in the slot, or is queued for a
     transmittance estimator that has no per-step form), optional Russian roulette and the phase-sampled
     continuation.
@@ -56,6 +57,10 @@ class NRCRule:
 
     rule: str  # "count" | "spread"
     records_per_path: int  # V
+    # "full": the cache holds all scattered radiance, a terminating path does no next-event estimation;
+    # "indirect": the cache holds the scattered radiance minus the direct light, and a terminating path adds
+    # next-event estimation by light sampling alone (no MIS: nothing continues to pick up its other half)
+    cache_target: str = "full"
 
 
 def _where3(m: Tensor, a: tuple, b: tuple) -> tuple:
@@ -242,6 +247,8 @@ class Transport:
             s.spread, s.a0, s.n_term = spread, a0, n_term
             s.x_prev = _where3(go, x, s.x_prev)
 
+        # the vertex does next-event estimation: a scattering one; with cache_target=indirect a terminating one too
+        nee = go if self.nrc is None or self.nrc.cache_target == "full" else torch.ones_like(go)
         lights = self.lights
         sh = torch.zeros_like(s.shadow)
         wi, tse, csh = s.wi, s.tse, s.csh
@@ -255,9 +262,9 @@ class Transport:
                 l_pdf, l_env = ls.light_pdf, ls.is_env
             tse = torch.minimum(box_exit(lo, hi, x, wi), l_dist)
             phase = hg_pdf(g, d[0] * wi[0] + d[1] * wi[1] + d[2] * wi[2])
-            w = phase * torch.where(l_env, power_heuristic(l_pdf, phase), torch.ones_like(phase))
+            w = phase * torch.where(l_env & go, power_heuristic(l_pdf, phase), torch.ones_like(phase))
             csh = tuple(b * lw * w for b, lw in zip(beta_s, l_w))
-            sh = torch.where(go, torch.full_like(sh, 1 if self.inline_shadow else 2), sh)
+            sh = torch.where(nee, torch.full_like(sh, 1 if self.inline_shadow else 2), sh)
         amax = torch.maximum(torch.maximum(beta_s[0], beta_s[1]), beta_s[2])
         stop = amax <= 0
         if not lights.has_env:  # the last vertex only continues when phase sampling can reach the sky (MIS)
@@ -275,11 +282,11 @@ class Transport:
         s.tmax = torch.where(go, t_far, s.tmax)
         s.beta = _where3(go, beta_s, s.beta)
         s.pdf = torch.where(go, pdf_s, s.pdf)
-        s.wi = _where3(go, wi, s.wi)
-        s.ts = torch.where(go, zero, s.ts)
-        s.tse = torch.where(go, tse, s.tse)
-        s.tr = torch.where(go, zero + 1.0, s.tr)
-        s.csh = _where3(go, csh, s.csh)
+        s.wi = _where3(nee, wi, s.wi)
+        s.ts = torch.where(nee, zero, s.ts)
+        s.tse = torch.where(nee, tse, s.tse)
+        s.tr = torch.where(nee, zero + 1.0, s.tr)
+        s.csh = _where3(nee, csh, s.csh)
         s.n = torch.where(go, n_s, s.n)
         s.flight = torch.where(go, torch.where(stop, DONE, FLIGHT), torch.full_like(s.flight, QUERY))
         s.shadow = sh
