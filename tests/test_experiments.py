@@ -144,7 +144,7 @@ def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
 def test_headline_is_nrc_plus_oidn_against_pt_plus_oidn_with_the_bias():
     """The results page's headline: the side-lit run's NRC + OIDN over PT + OIDN ratio at equal time, NRC + OIDN's
     image mean beside it, the raw ratio, and the same ratio of every other scene-type run."""
-    from nrc.evaluation.experiments import headline
+    from nrc.evaluation.experiments import headline, scene_type_table
 
     def run(ratio_den, mean):
         rows = [{"mode": "single", "config": "nrc+oidn", "renderer": "nrc", "denoised": True, "time_s": 0.3,
@@ -162,3 +162,5 @@ def test_headline_is_nrc_plus_oidn_against_pt_plus_oidn_with_the_bias():
     assert "relMSE ratio **4.5**" in text and "**0.962** of the reference" in text
     assert "raw path tracer: 0.12" in text and "cumulus: 2.2 (mean 1.05)" in text
     assert headline({"speed_160x90_v2": ("old", run(1.0, 1.0))}) == []
+    table = scene_type_table({"oidn_160x90_cumulus": ("cumulus", {**run(2.25, 1.05), "meta": {"argv": ["--warmup", "30"]}})})
+    assert len(table) == 4 and "| cumulus, 30 warm-up frames | 0.12 | **2.2** |" in table[2]

@@ -137,3 +137,16 @@ def test_denoised_twins_and_both_baselines(sve, tmp_path):
     assert against == {("nrc_tiny", "pt"), ("nrc_tiny+oidn", "pt+oidn"), ("nrc_tiny", "pt+oidn")}
     md = (tmp_path / "out" / "speed_vs_error.md").read_text()
     assert "| nrc_tiny+oidn | pt+oidn |" in md and "mean / reference, medium" in md
+
+
+def test_equal_time_front_is_flat_where_more_time_did_not_help(sve):
+    """A denoised path tracer that is worse at 16 spp than at 4: at a time between the two the baseline is the
+    4-spp error (a user would stop there), not an extrapolation below it."""
+    base = [{"mode": "single", "config": "pt", "renderer": "pt", "spp": s, "time_s": t, "rel_mse": e}
+            for s, t, e in ((1, 0.3, 0.004), (4, 0.5, 0.002), (16, 1.0, 0.006))]
+    nrc = {"mode": "single", "config": "nrc", "renderer": "nrc", "spp": 1, "time_s": 0.8, "rel_mse": 0.01}
+    (q,) = sve.equal_time_ratios(base + [nrc], "pt")
+    assert q["pt_rel_mse"] == pytest.approx(0.002) and q["ratio_rel_mse"] == pytest.approx(5.0)
+    assert not q["extrapolated"]
+    (q,) = sve.equal_time_ratios(base + [{**nrc, "time_s": 2.0}], "pt")  # beyond every measured frame: ~ 1/time
+    assert q["extrapolated"] and q["pt_rel_mse"] == pytest.approx(0.002 * 0.5 / 2.0)

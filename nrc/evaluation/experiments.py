@@ -338,10 +338,18 @@ BUILDERS = {
 # (label, run directory under docs/results/): first the comparison with the path tracer plus a denoiser on the
 # scene types (the headline), then the earlier runs against the raw path tracer on the front-lit preset
 SPEED_RUNS = [("side-lit Disney cloud (sun + sky, g 0.5), 480 x 270", "oidn_480x270_side_lit"),
+              ("side-lit Disney cloud, 480 x 270, a warm cache", "oidn_480x270_side_lit_warm"),
               ("side-lit Disney cloud (sun + sky, g 0.5), 160 x 90", "oidn_160x90_side_lit"),
+              ("side-lit Disney cloud, 160 x 90, a warm cache", "oidn_160x90_side_lit_warm"),
               ("the default cumulus (back-lit sun + sky, g 0.8), 160 x 90", "oidn_160x90_cumulus"),
               ("thin back-lit Disney cloud (density 0.15, g 0.95), 160 x 90", "oidn_160x90_back_lit_thin"),
               ("point light below the Disney cloud (g -0.3), 160 x 90", "oidn_160x90_point_below"),
+              ("side-lit Disney cloud, 160 x 90, accumulated frames with a static camera",
+               "oidn_160x90_side_lit_accumulate"),
+              ("light selection uniform against power: the side-lit Disney cloud, 160 x 90",
+               "light_selection_160x90_side_lit"),
+              ("light selection uniform against power: a point light below the Disney cloud with a dim sun and sky, "
+               "160 x 90", "light_selection_160x90_three_lights"),
               ("front-lit preset (sun_front), raw path tracer, 480 x 270 (older code)", "speed_480x270_v2"),
               ("front-lit preset (sun_front), raw path tracer, 160 x 90 (older code)", "speed_160x90_v2"),
               ("front-lit preset, 160 x 90, the default sweep (encodings, extra inputs, transmittance estimators; "
@@ -363,6 +371,33 @@ def _ratio(summary: dict, config: str, baseline: str) -> dict | None:
 
 def _row(summary: dict, config: str) -> dict | None:
     return next((r for r in summary.get("rows", []) if r["config"] == config and r["mode"] == "single"), None)
+
+
+def scene_type_table(summaries: dict[str, tuple[str, dict]]) -> list[str]:
+    """One row per run against the path tracer plus a denoiser (``oidn_*``): the equal-time relMSE ratios over
+    the medium pixels raw and denoised, the image means, HDR-FLIP, and the earlier NRC defaults (``nrc_v1``)."""
+    lines = ["| run | NRC / pt | NRC+OIDN / pt+OIDN | NRC / pt+OIDN | NRC+OIDN mean / ref | pt+OIDN mean / ref "
+             "(nearest time) | HDR-FLIP NRC+OIDN / pt+OIDN | earlier defaults (`nrc_v1`): NRC+OIDN / pt+OIDN, mean |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, (label, summ) in summaries.items():
+        den = _ratio(summ, HEADLINE + "+oidn", "pt+oidn")
+        if not name.startswith("oidn_") or den is None:
+            continue
+        raw, cross = _ratio(summ, HEADLINE, "pt"), _ratio(summ, HEADLINE, "pt+oidn")
+        old, row_old = _ratio(summ, "nrc_v1+oidn", "pt+oidn"), _row(summ, "nrc_v1+oidn")
+        row = _row(summ, HEADLINE + "+oidn")
+        pts = [r for r in summ["rows"] if r["mode"] == "single" and r.get("denoised") and r["renderer"] == "pt"]
+        near = min(pts, key=lambda r: abs(r["time_s"] - den["time_s"])) if pts else {}
+        warm = summ["meta"].get("argv", [])
+        warmup = warm[warm.index("--warmup") + 1] if "--warmup" in warm else "?"
+        lines.append(
+            f"| {label}, {warmup} warm-up frames | {fmt(raw and raw['ratio_rel_mse_medium'], 2)} | "
+            f"**{den['ratio_rel_mse_medium']:.2g}** | {fmt(cross and cross['ratio_rel_mse_medium'], 2)} | "
+            f"{fmt(row.get('mean_ratio_medium'), 3)} | {fmt(near.get('mean_ratio_medium'), 3)} | "
+            f"{fmt(row.get('flip'), 3)} / {fmt(near.get('flip'), 3)} | "
+            + (f"{old['ratio_rel_mse_medium']:.2g}, {fmt(row_old.get('mean_ratio_medium'), 3)} |" if old and row_old
+               else "– |"))
+    return lines + [""] if len(lines) > 2 else []
 
 
 def headline(summaries: dict[str, tuple[str, dict]]) -> list[str]:
@@ -427,10 +462,9 @@ def assemble_results(docs: Path, intro: Path | None) -> Path:
         lines += sec
         if summary is not None:
             summaries[name] = (label, summary)
-    head = headline(summaries)
-    if head:
-        at = lines.index("## Speed versus error") + 1
-        lines[at:at] = ["", *head]
+    head = headline(summaries) + scene_type_table(summaries)
+    if head:  # first thing on the page, after the line that says how it was generated
+        lines[4:4] = head
     lines += ["## Thesis experiments at CPU scale", ""]
     for name in REPORTS:
         f = docs / "results" / f"{name}.md"

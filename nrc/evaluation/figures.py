@@ -54,7 +54,8 @@ COMPARISONS: dict[str, tuple[str, list[str]]] = {
         "scene.volume.density_scale=0.6", "scene.volume.g=0.5", "scene.lights.0.direction=[-1,-0.25,0]"]),
     "default": ("the default scene (scene=sun)", []),
 }
-RENDER_SEEDS = range(0, 1000)  # the seeds of the compared renders (pt 7, 11, 100 + frame; nrc 0)
+RENDER_SEEDS = range(0, 1000)  # the seeds of the compared renders (pt 7, 11-13, 100 + frame; nrc 0)
+PT_SEEDS = (11, 12, 13)  # the comparison's path-traced renders (the first also sets the spp)
 HEROES: dict[str, tuple[str, list[str]]] = {
     "cumulus": ("cumulus (the default scene)", []),
     "stratocumulus": ("stratocumulus, from below", [
@@ -197,7 +198,7 @@ def comparison(args: argparse.Namespace, log: dict[str, Any]) -> tuple[float, in
     spp, pt_time, pt_img = 0, 0.0, None
     for k in (1, 2, 3, 4, 6, 8, 12, 16, 24, 32):
         t0 = time.perf_counter()
-        img = tracers(k, 11).render().image
+        img = tracers(k, PT_SEEDS[0]).render().image
         dt = time.perf_counter() - t0
         if spp and dt > nrc_frame:
             break
@@ -227,15 +228,30 @@ def comparison(args: argparse.Namespace, log: dict[str, Any]) -> tuple[float, in
                               f"{n['rel_mse_medium']:.3g}, mean {n['mean_over_reference_medium']:.2f}x ref")]
     denoise = _denoiser()
     if denoise is not None:
-        for key, img, label in (("pt_oidn", pt_img, f"path tracer + OIDN ({spp} spp)"),
-                                ("nrc_oidn", last["image"], "NRC + OIDN")):
-            t0 = time.perf_counter()
-            den = denoise(img)
-            result[key] = {**score(den), "time_denoise_s": time.perf_counter() - t0}
-            q = result[key]
-            panels.append((den, f"{label}\nrelMSE {q['rel_mse_medium']:.3g}, "
-                                f"mean {q['mean_over_reference_medium']:.2f}x ref"))
-        panels = [panels[0], panels[2], panels[1], panels[3]]
+        # OIDN occasionally leaves a path-traced frame's noise in (here 1 of 9 side-lit frames at 4-8 spp, relMSE
+        # 0.027 against 0.0014-0.0026): the path tracer's panels show the render with the median denoised error
+        # of three seeds (11, 12, 13), all three scored in the JSON
+        raws = [pt_img] + [tracers(spp, seed).render().image for seed in PT_SEEDS[1:]]
+        t0 = time.perf_counter()
+        renders = [(im, denoise(im)) for im in raws]
+        t_den = (time.perf_counter() - t0) / len(renders)
+        errs = [rel_mse(d, ref.image, mask) for _, d in renders]
+        med = int(np.argsort(errs)[len(errs) // 2])
+        pt_img, pt_den = renders[med]
+        result["pt"] = {**score(pt_img), "spp": spp, "time_s": pt_time, "seed": PT_SEEDS[med]}
+        result["pt_oidn"] = {**score(pt_den), "seed": PT_SEEDS[med], "rel_mse_medium_per_seed": dict(zip(
+            map(str, PT_SEEDS), errs)), "time_denoise_s": t_den}
+        t0 = time.perf_counter()
+        nrc_den = denoise(last["image"])
+        result["nrc_oidn"] = {**score(nrc_den), "time_denoise_s": time.perf_counter() - t0}
+        p, q, r = result["pt"], result["pt_oidn"], result["nrc_oidn"]
+        panels = [(pt_img, f"path tracer, {spp} spp ({pt_time:.2f} s)\nrelMSE {p['rel_mse_medium']:.3g}, "
+                           f"mean {p['mean_over_reference_medium']:.2f}x ref"),
+                  (pt_den, f"path tracer + OIDN ({spp} spp, median of 3)\nrelMSE {q['rel_mse_medium']:.3g}, "
+                           f"mean {q['mean_over_reference_medium']:.2f}x ref"),
+                  panels[1],
+                  (nrc_den, f"NRC + OIDN\nrelMSE {r['rel_mse_medium']:.3g}, "
+                            f"mean {r['mean_over_reference_medium']:.2f}x ref")]
     panels.append((ref.image, f"reference ({args.ref_spp} spp)\n"))
     h, w = ref.image.shape[:2]
     fig, axes = plt.subplots(1, len(panels), figsize=(len(panels) * w / 50, h / 50 + 0.6), dpi=100)

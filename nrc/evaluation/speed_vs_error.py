@@ -425,6 +425,8 @@ def baseline_names(baseline: str | list[str] | None) -> list[str]:
 def equal_time_ratios(rows: list[dict[str, Any]], baseline: str | list[str], clock: str = "time_s") -> list[dict[str, Any]]:
     """NRC single-frame points against the baseline path tracers at the same time per frame: the Pareto front of
     all their points (the best path-tracer error measured at that time, whichever configuration reached it).
+    Between the front's slowest point and the slowest measured point the front is flat (spending that time was
+    measured not to help); beyond every measured point it is extrapolated (:func:`loglog_interp`).
 
     ``clock``: ``time_s`` (wall time) or ``cpu_s`` (process CPU time, all threads: less sensitive to other
     jobs on a shared machine).
@@ -445,10 +447,16 @@ def equal_time_ratios(rows: list[dict[str, Any]], baseline: str | list[str], clo
             if r.get(key) is None or any(b.get(key) is None or b[key] <= 0 for b in base) or r[key] <= 0:
                 continue
             front = pareto([(b["time_s"], b[key]) for b in base])
-            pt_e = loglog_interp(r["time_s"], [f[0] for f in front], [f[1] for f in front])
+            slowest = max(b["time_s"] for b in base)
+            if front[-1][0] < r["time_s"] <= slowest:
+                # more time was measured and did not help (the slower points are off the front, e.g. a denoised
+                # path tracer that is no better at 16 spp than at 4): the best reachable error stays flat
+                pt_e = front[-1][1]
+            else:
+                pt_e = loglog_interp(r["time_s"], [f[0] for f in front], [f[1] for f in front])
             item[f"pt_{key}"] = pt_e
             item[f"ratio_{key}"] = r[key] / pt_e
-            item["extrapolated"] = not (front[0][0] <= r["time_s"] <= front[-1][0])
+            item["extrapolated"] = not (front[0][0] <= r["time_s"] <= slowest)
         out.append(item)
     return out
 
@@ -554,8 +562,10 @@ def markdown(rows, ratios, cross, meta) -> str:
     if ratios:
         pts = ", ".join(f"`{n}`" for n in baseline_names(meta["baseline"]))
         lines += [f"**Equal time per frame**: NRC relMSE over the path tracer's relMSE (the Pareto front of {pts}) "
-                  "interpolated (log-log) at the NRC time per frame (beyond PT's slowest point extrapolated with relMSE ~ 1/time; below its fastest "
-                  "frame, PT's fastest frame's error: a frame cannot take less than PT's smallest spp).", "",
+                  "interpolated (log-log) at the NRC time per frame (between the front's slowest point and PT's slowest "
+                  "measured frame flat: that time was measured not to help; beyond every measured frame extrapolated with "
+                  "relMSE ~ 1/time; below its fastest frame, PT's fastest frame's error: a frame cannot take less than "
+                  "PT's smallest spp).", "",
                   "The corrected ratio subtracts the reference's noise floor from both relMSEs first.", "",
                   "| config | against | spp/frame | time/frame (s) | NRC relMSE medium | PT relMSE medium at equal "
                   "time | ratio medium | ratio all | ratio medium, floor-corrected | PT extrapolated |",

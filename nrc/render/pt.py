@@ -5,8 +5,8 @@ Estimator (per camera sample; SCENE.md conventions):
 * Free flights by delta tracking against the brick majorants (one global majorant with
   ``renderer.free_flight=global``), bricks with a zero majorant crossed in one step; at a real collision the
   path scatters (throughput x albedo), up to ``integrator.max_scatter`` real scattering events.
-* Next-event estimation at every real scattering vertex: one light chosen uniformly among the scene's
-  lights, its transmittance by ratio tracking inside the step (``transmittance=ratio``) or by the configured
+* Next-event estimation at every real scattering vertex: one light chosen (``renderer.light_selection``:
+  uniformly or by power) among the scene's lights, its transmittance by ratio tracking inside the step (``transmittance=ratio``) or by the configured
   estimator on queued batches of ``renderer.shadow_batch`` rays. Environment light is also gathered by
   phase-sampled directions that escape the box, combined with NEE by the power heuristic (camera rays that
   escape see the environment with weight 1).
@@ -40,7 +40,7 @@ from nrc.render.wavefront import BACKENDS, build_core, camera_paths
 from nrc.render.wavefront.driver import Wavefront
 from nrc.render.wavefront.machine import compiled_graphs
 from nrc.scene import Scene
-from nrc.transport.light_sampling import LightSampler
+from nrc.transport.light_sampling import SELECTIONS, LightSampler
 from nrc.transport.rng import path_key, uniforms
 from nrc.transport.transmittance import make_transmittance
 
@@ -72,6 +72,8 @@ class PathTracerSettings:
     """``auto`` with a cold cache: renders of fewer camera samples stay eager."""
     steps_per_call: int
     """Tracking steps unrolled per compiled call."""
+    light_selection: str = "uniform"
+    """Which light a vertex's next-event estimate samples: ``uniform`` | ``power`` (nrc.transport.light_sampling)."""
 
     @classmethod
     def from_config(cls, renderer: Any) -> PathTracerSettings:
@@ -88,6 +90,7 @@ class PathTracerSettings:
             backend=cfg.get_choice("backend", list(BACKENDS)),
             compile_min_samples=cfg.get_int("compile_min_samples", lo=0),
             steps_per_call=cfg.get_int("steps_per_call", lo=1),
+            light_selection=cfg.get_choice("light_selection", list(SELECTIONS)),
         )
         for block in (rr, cfg):
             block.finish()
@@ -111,7 +114,7 @@ class PathTracer:
         self.slots, self.shadow_batch = st.slots, st.shadow_batch
         self.free_flight, self.backend, self.steps_per_call = st.free_flight, st.backend, st.steps_per_call
         self.transmittance = make_transmittance(cfg.get("transmittance"))
-        self.lights = LightSampler(scene.lights, self.device)
+        self.lights = LightSampler.for_scene(scene, st.light_selection)
         self.spp = scene.integrator.spp
         self.max_scatter = scene.integrator.max_scatter
         self.core = build_core(scene.grid, self.lights, scene.albedo, scene.g, self.max_scatter, self.transmittance,

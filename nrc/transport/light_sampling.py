@@ -1,7 +1,16 @@
 """Next-event estimation: sampling the scene's lights, and the environment's radiance and pdf for MIS.
 
-One light is chosen uniformly among the lights the scene has (no light, no shadow rays). For the chosen
-light a direction ``wi`` (unit, from the shading point towards the light) is produced with:
+One light is chosen among the lights the scene has (no light, no shadow rays), by ``renderer.light_selection``:
+
+* ``uniform``: each with probability ``1 / n``;
+* ``power``: with probability proportional to the power the light sends into the medium's bounding sphere
+  (centre ``c``, radius ``R`` of the grid's box), in luminance (Rec. 709) of the RGB values
+  (:func:`light_powers`): a directional light ``pi R^2 E``; a point light at distance ``r > R`` from ``c``
+  ``I 2 pi (1 - sqrt(1 - R^2 / r^2))`` (the solid angle the sphere subtends), inside the sphere ``4 pi I``;
+  a uniform sky ``pi R^2 4 pi L``; a lat-long map ``pi R^2`` times its radiance integrated over the sphere.
+  Lights that send nothing are never chosen; when none sends anything the choice is uniform.
+
+For the chosen light a direction ``wi`` (unit, from the shading point towards the light) is produced with:
 
 * directional: ``wi = -direction`` (a delta distribution), weight ``irradiance``;
 * point: ``wi`` towards the position, distance ``r``, weight ``intensity / r^2``;
@@ -24,6 +33,35 @@ from torch import Tensor
 from nrc.transport.lights import DirectionalLight, EnvironmentLight, Light, PointLight
 
 _LUMINANCE = (0.2126, 0.7152, 0.0722)
+SELECTIONS = ("uniform", "power")
+
+
+def _lum(rgb: Tensor) -> float:
+    return float((rgb.double().cpu() * torch.tensor(_LUMINANCE, dtype=torch.float64)).sum())
+
+
+def light_powers(lights: tuple[Light, ...], centre: Tensor, radius: float) -> list[float]:
+    """Luminance power each light sends into the sphere ``(centre, radius)``, in :class:`LightSampler`'s light
+    order (directional, point, the uniform skies together, then each lat-long map; module docstring)."""
+    area = math.pi * radius * radius
+    out = [area * _lum(lt.irradiance) for lt in lights if isinstance(lt, DirectionalLight)]
+    for lt in lights:
+        if isinstance(lt, PointLight):
+            r = float(torch.linalg.vector_norm((lt.position - centre).double().cpu()))
+            solid = 4.0 * math.pi if r <= radius else 2.0 * math.pi * (1.0 - math.sqrt(1.0 - (radius / r) ** 2))
+            out.append(_lum(lt.intensity) * solid)
+    envs = [lt for lt in lights if isinstance(lt, EnvironmentLight)]
+    uniform = [e for e in envs if e.radiance is not None]
+    if uniform:
+        out.append(area * 4.0 * math.pi * sum(_lum(e.radiance) * e.scale for e in uniform))
+    for e in envs:
+        if e.image is not None:
+            h, w = e.image.shape[:2]
+            theta = (torch.arange(h, dtype=torch.float64) + 0.5) / h * math.pi
+            d_omega = (2.0 * math.pi / w) * (math.pi / h) * torch.sin(theta)  # (H,) solid angle of a pixel
+            lum = (e.image.double().cpu() * torch.tensor(_LUMINANCE, dtype=torch.float64)).sum(-1) * e.scale
+            out.append(area * float((lum * d_omega[:, None]).sum()))
+    return out
 
 
 def direction_to_latlong(d: Tensor) -> tuple[Tensor, Tensor]:
@@ -121,14 +159,23 @@ class LightSample:
 
 
 class LightSampler:
-    """Samples the scene's lights uniformly; evaluates the environment for escaping paths.
+    """Samples one of the scene's lights (``selection``); evaluates the environment for escaping paths.
 
     Args:
         lights: the scene's lights (any number, including none).
+        selection: ``uniform`` or ``power`` (module docstring).
+        bounds: ``(lo, hi)`` of the medium's box, for ``power``.
     """
 
-    def __init__(self, lights: tuple[Light, ...], device: torch.device) -> None:
+    def __init__(self, lights: tuple[Light, ...], device: torch.device, selection: str = "uniform",
+                 bounds: tuple[Tensor, Tensor] | None = None) -> None:
+        if selection not in SELECTIONS:
+            raise ValueError(f"light selection must be one of {', '.join(SELECTIONS)}, got {selection!r}")
+        if selection == "power" and bounds is None:
+            raise ValueError("power light selection needs the medium's bounds")
         self.device = device
+        self.lights = tuple(lights)
+        self.selection, self.bounds = selection, bounds
         self.directional = [lt for lt in lights if isinstance(lt, DirectionalLight)]
         self.points = [lt for lt in lights if isinstance(lt, PointLight)]
         envs = [lt for lt in lights if isinstance(lt, EnvironmentLight)]
@@ -141,6 +188,31 @@ class LightSampler:
         self.has_uniform_env = any(e.radiance is not None for e in envs)
         self.n_lights = len(self.directional) + len(self.points) + int(self.has_uniform_env) + len(self.env_maps)
         self.has_env = self.has_uniform_env or bool(self.env_maps)
+        # selection probabilities in light order (directional, point, uniform sky, maps)
+        self.pmf = [1.0 / self.n_lights] * self.n_lights if self.n_lights else []
+        if selection == "power" and self.n_lights:
+            lo, hi = bounds
+            powers = light_powers(self.lights, (lo + hi) / 2, float(torch.linalg.vector_norm(hi - lo)) / 2)
+            total = sum(powers)
+            if total > 0:
+                self.pmf = [pw / total for pw in powers]
+        self._pmf = torch.tensor(self.pmf or [1.0], device=device)
+        self._cdf = torch.cumsum(self._pmf.double(), 0).float()
+
+    @classmethod
+    def for_scene(cls, scene, selection: str = "uniform") -> LightSampler:
+        """The sampler of a scene's lights, bounded by its medium's box."""
+        box = scene.grid.box
+        return cls(scene.lights, scene.device, selection, (box.lo, box.hi))
+
+    def with_lights(self, lights: tuple[Light, ...]) -> LightSampler:
+        """The same selection for other lights (an animated sun)."""
+        return LightSampler(lights, self.device, self.selection, self.bounds)
+
+    @property
+    def env_select(self) -> list[float]:
+        """Selection probabilities of the environment lights: the uniform sky (if any), then each map."""
+        return self.pmf[len(self.directional) + len(self.points):]
 
     def env_radiance(self, d: Tensor) -> Tensor:
         """Environment radiance ``(N, 3)`` arriving from unit directions ``d`` (zero without environment)."""
@@ -154,16 +226,20 @@ class LightSampler:
         pdf = torch.zeros(d.shape[0], device=d.device)
         if self.n_lights == 0:
             return pdf
+        sel = iter(self.env_select)
         if self.has_uniform_env:
-            pdf = pdf + 1.0 / (4.0 * math.pi)
+            pdf = pdf + next(sel) / (4.0 * math.pi)
         for m in self.env_maps:
-            pdf = pdf + m.pdf(d)
-        return pdf / self.n_lights
+            pdf = pdf + next(sel) * m.pdf(d)
+        return pdf
 
     def sample(self, x: Tensor, u: Tensor) -> LightSample:
         """Sample one light per point ``x`` ``(N, 3)`` with uniforms ``u`` ``(N, 4)``; requires ``n_lights > 0``."""
         n = x.shape[0]
-        k = (u[:, 0] * self.n_lights).long().clamp(max=self.n_lights - 1)
+        if self.selection == "uniform":
+            k = (u[:, 0] * self.n_lights).long().clamp(max=self.n_lights - 1)
+        else:
+            k = torch.searchsorted(self._cdf, u[:, 0].contiguous(), right=True).clamp(max=self.n_lights - 1)
         inf = torch.full((n,), float("inf"), device=x.device)
         wi = torch.zeros(n, 3, device=x.device)
         wi[:, 1] = 1.0
@@ -198,18 +274,21 @@ class LightSampler:
             m = k == idx
             d, pdf_drawn = emap.sample(u[:, 1:4])
             wi = torch.where(m[:, None], d, wi)
-            own_fix = torch.where(m, (pdf_drawn - emap.pdf(d)) / self.n_lights, own_fix)
+            own_fix = torch.where(m, (pdf_drawn - emap.pdf(d)) * self.pmf[idx], own_fix)
             is_env = is_env | m
             idx += 1
+        # 1 / P(select) of the delta lights' samples
+        inv_select = torch.full((n,), float(self.n_lights), device=x.device) if self.selection == "uniform" \
+            else 1.0 / self._pmf[k].clamp(min=1e-30)
         if self.has_env:
             # Environment samples: balance heuristic over all environment lights, i.e. the total
             # environment radiance over the summed pdf (which includes P(select)).
             pdf = self.env_pdf(wi) + own_fix
             light_pdf = torch.where(is_env, pdf, light_pdf)
             env_w = self.env_radiance(wi) / pdf.clamp(min=1e-30)[:, None]
-            weight = torch.where(is_env[:, None], env_w, weight * self.n_lights)
+            weight = torch.where(is_env[:, None], env_w, weight * inv_select[:, None])
         else:
-            weight = weight * self.n_lights
+            weight = weight * inv_select[:, None]
         return LightSample(wi, dist, weight, light_pdf, is_env)
 
 
@@ -235,7 +314,8 @@ class LightTable:
 
     Layout of :attr:`values`: per directional light ``-direction (3), irradiance (3)``; per point light
     ``position (3), intensity (3)``; with a uniform sky its radiance ``(3)`` and the NEE pdf of any
-    direction, ``1 / (4 pi n_lights)``.
+    direction, ``P(select sky) / (4 pi)``; with ``power`` selection (and several lights) then every light's
+    selection probability, in light order (the uniform choice needs none).
 
     Args:
         lights: the sampler whose lights are read.
@@ -248,19 +328,24 @@ class LightTable:
         self.has_uniform_env = lights.has_uniform_env
         self.n_lights = lights.n_lights
         self.has_env = lights.has_env
+        self.selection = lights.selection if lights.n_lights > 1 else "uniform"
         vals: list[float] = []
         for lt in lights.directional:
             vals += [float(v) for v in (-lt.direction).tolist()] + [float(v) for v in lt.irradiance.tolist()]
         for lt in lights.points:
             vals += [float(v) for v in lt.position.tolist()] + [float(v) for v in lt.intensity.tolist()]
         if self.has_uniform_env:
-            vals += [float(v) for v in lights.uniform_env.tolist()] + [1.0 / (4.0 * math.pi) / self.n_lights]
+            vals += [float(v) for v in lights.uniform_env.tolist()] + [lights.env_select[0] / (4.0 * math.pi)]
+        if self.selection == "power":
+            vals += [float(p) for p in lights.pmf]
         self.values = vals
 
     @property
-    def structure(self) -> tuple[int, int, bool]:
-        """What a compiled step depends on: ``(directional lights, point lights, uniform sky)``."""
-        return self.n_directional, self.n_points, self.has_uniform_env
+    def structure(self) -> tuple:
+        """What a compiled step depends on: ``(directional lights, point lights, uniform sky)``, and ``"power"``
+        for the power selection of several lights."""
+        base = (self.n_directional, self.n_points, self.has_uniform_env)
+        return (*base, "power") if self.selection == "power" else base
 
     @property
     def lanes(self) -> int:
@@ -273,7 +358,19 @@ class LightTable:
         n = self.n_lights
         lane = 0
         k = None
-        if n > 1:
+        power = self.selection == "power"
+        if power:  # the selection probabilities are the last n values; k = the number of CDF steps below u
+            pmf = values[len(values) - n:]
+            acc, k = pmf[0], torch.zeros_like(x[0], dtype=torch.long)
+            for j in range(1, n):
+                k = k + (u[0] >= acc).long()
+                acc = acc + pmf[j]
+            inv = pmf[n - 1] + torch.zeros_like(x[0])
+            for j in range(n - 1):
+                inv = torch.where(k == j, pmf[j] + torch.zeros_like(x[0]), inv)
+            inv = 1.0 / inv.clamp(min=1e-30)
+            lane = 1
+        elif n > 1:
             k = (u[0] * n).long().clamp(max=n - 1)
             lane = 1
         zero = torch.zeros_like(x[0])
@@ -305,8 +402,8 @@ class LightTable:
             is_env = torch.ones_like(is_env) if m is None else m
             env, pdf = values[pos:pos + 3], values[pos + 3]
             light_pdf = torch.where(is_env, zero + pdf, zero)
-            weight = tuple(torch.where(is_env, e / pdf + zero, w * n) for e, w in zip(env, weight))
+            weight = tuple(torch.where(is_env, e / pdf + zero, w * (inv if power else n)) for e, w in zip(env, weight))
         else:
             light_pdf = zero
-            weight = tuple(w * n for w in weight)
+            weight = tuple(w * (inv if power else n) for w in weight)
         return wi, dist, weight, light_pdf, is_env

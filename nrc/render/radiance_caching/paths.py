@@ -3,8 +3,8 @@
 Render paths (``spp`` per pixel) and training paths (one per training pixel) are traced in the same
 working set of ``slots`` paths by the path tracer's transport core (:mod:`nrc.render.wavefront`, the same
 step code, eager or compiled: ``renderer.backend``): delta tracking against the brick majorants, next-event
-estimation at every real scattering vertex (one light chosen uniformly, transmittance by ratio tracking in
-the step or the configured estimator), phase sampling with MIS against the environment. The NRC part of the
+estimation at every real scattering vertex (one light chosen by ``renderer.light_selection``, transmittance
+by ratio tracking in the step or the configured estimator), phase sampling with MIS against the environment. The NRC part of the
 step is its vertex: the termination rule, the training records and the cache query.
 
 Cache termination (:mod:`nrc.render.radiance_caching.termination`) at a real scattering vertex ``m``: the path stops
@@ -129,7 +129,7 @@ class NRCPathTracer:
     def __init__(self, scene: Scene, transmittance: object, termination: Termination, records_per_path: int,
                  extra_vertices: int, slots: int, shadow_batch: int, brick: object = "auto",
                  free_flight: str = "brick", backend: str = "eager", steps_per_call: int = 1,
-                 compile_min_samples: int = 0, cache_target: str = "full") -> None:
+                 compile_min_samples: int = 0, cache_target: str = "full", light_selection: str = "uniform") -> None:
         self.scene = scene
         self.device = scene.device
         self.transmittance = transmittance
@@ -139,6 +139,7 @@ class NRCPathTracer:
         self.slots = slots
         self.shadow_batch = shadow_batch
         self.cache_target = cache_target
+        self.light_selection = light_selection
         self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples)
         self._cores: dict = {}
         self.core = self._core(RandomSource.counter_uniforms)
@@ -150,7 +151,7 @@ class NRCPathTracer:
         if uniforms not in self._cores:
             s = self.scene
             self._cores[uniforms] = build_core(
-                s.grid, LightSampler(s.lights, self.device), s.albedo, s.g, s.integrator.max_scatter,
+                s.grid, LightSampler.for_scene(s, self.light_selection), s.albedo, s.g, s.integrator.max_scatter,
                 self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V, self.cache_target),
                 termination=self.termination, uniforms=uniforms, inline_shadows=False)
             self._cores[uniforms].warm_fraction = 1 / 12  # see Core.warm_fraction

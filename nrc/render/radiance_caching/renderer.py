@@ -156,9 +156,10 @@ class NRCRenderer:
         self.transmittance = make_transmittance(cfg.get("transmittance"))
         self.tracer = NRCPathTracer(scene, self.transmittance, st.termination, tr.records_per_path,
                                     tr.extra_vertices, st.slots, st.shadow_batch, st.brick, st.free_flight,
-                                    st.backend, st.steps_per_call, st.compile_min_samples, st.cache_target)
+                                    st.backend, st.steps_per_call, st.compile_min_samples, st.cache_target,
+                                    st.light_selection)
         self.tracer.frames = self.frames
-        self.lights = LightSampler(scene.lights, self.device)
+        self.lights = LightSampler.for_scene(scene, st.light_selection)
         self.reference = self._load_reference(st.reference)
         self.out_dir: Path | None = None
         self.config_yaml = OmegaConf.to_yaml(cfg) if isinstance(cfg, DictConfig) else ""
@@ -201,8 +202,8 @@ class NRCRenderer:
         if self.settings.animate != "sun" or frame == 0:
             return self.lights
         rot = rotation_y(self.settings.degrees_per_frame * frame, self.device)
-        return LightSampler(tuple(replace(lt, direction=rot @ lt.direction) if isinstance(lt, DirectionalLight)
-                                  else lt for lt in self.scene.lights), self.device)
+        return self.lights.with_lights(tuple(replace(lt, direction=rot @ lt.direction)
+                                             if isinstance(lt, DirectionalLight) else lt for lt in self.scene.lights))
 
     # ------------------------------------------------------------------ one frame
     def frame_rng(self, frame: int) -> RandomSource:

@@ -13,10 +13,10 @@ eagerly or ``torch.compile``'d (the same code; :mod:`nrc.render.wavefront.machin
 :meth:`Transport.vertex` -- the slots waiting at a real collision (a few percent; the driver runs it on that
     subset). ``nrc`` first applies the termination rule: a terminating path becomes a cache query
     (``QUERY``), a training path records the vertex; with ``cache_target=indirect`` a terminating path still
-    requests next-event estimation, weighted 1 (light sampling alone). Then both renderers scatter: throughput x albedo, a
-    next-event request (one light chosen uniformly; its shadow ray starts in the slot, or is queued for a
-    transmittance estimator that has no per-step form), optional Russian roulette and the phase-sampled
-    continuation.
+    requests next-event estimation, weighted 1 (light sampling alone). Then both renderers scatter:
+    throughput x albedo, a next-event request (one light chosen by the light table, uniformly or by power;
+    its shadow ray starts in the slot, or is queued for a transmittance estimator that has no per-step form),
+    optional Russian roulette and the phase-sampled continuation.
 
 Scene inputs are tensors, never Python constants: ``P`` (float32 ``(n_params,)``: box, grid dimensions,
 density scale, albedo, g, limits, the brick tables' scalars, the lights' parameters; :meth:`Transport.params`),
