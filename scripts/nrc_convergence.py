@@ -5,8 +5,8 @@ Usage::
     python scripts/nrc_convergence.py --preset side_lit --reference data/references/<ref>.exr --frames 150 \
         --variant a=renderer.training.width=64,renderer.training.height=64 --variant b= [--out conv.json] [scene overrides]
 
-Every variant runs the NRC renderer (compiled, seed 1001, the renderer's defaults plus the variant's Hydra
-overrides) for ``--frames`` frames from an untrained cache; at frames 10, 20, 30, 50, 75, 100, 150, 200 and 300
+Every variant runs the NRC renderer (compiled, seed 1001, the renderer's and scene's defaults -- 4 spp per
+frame unless ``scene.integrator.spp`` is given -- plus the variant's Hydra overrides) for ``--frames`` frames from an untrained cache; at frames 10, 20, 30, 50, 75, 100, 150, 200 and 300
 it prints and records the frame's relMSE over the medium pixels, raw and denoised (pyoidn), its image mean over
 the reference's (medium pixels), and the wall time since the renderer started (start-up and compilation
 included). The reference must come from the disjoint seed stream (``scripts/render_reference.py``).
