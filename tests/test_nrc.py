@@ -182,54 +182,75 @@ class ConstantRandom(RandomSource):
         return [torch.full(key.shape, self.value)] * lanes
 
 
+# The deterministic hand path: a constant medium, a global majorant, one pixel seen from +z, every uniform U.
+SIGMA, ALBEDO, G, U = 0.08, 0.8, 0.6, 0.3
+C = torch.tensor([0.2, 0.3, 0.4])
+
+
+def hand_config(tmp_path, *extra: str, g: float | None = G) -> list[str]:
+    """Overrides of the hand path's scene (writes its constant grid; ``g=None`` keeps the preset's g)."""
+    np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
+    return ["renderer=nrc", "scene=sun_front", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
+            f"scene.volume.density_scale={SIGMA}", f"scene.volume.albedo={ALBEDO}",
+            *([f"scene.volume.g={g}"] if g is not None else []),
+            "scene.camera.width=1", "scene.camera.height=1", "scene.camera.position=[0,0,150]",
+            "scene.camera.look_at=[0,0,0]", "scene.integrator.spp=1", "renderer.free_flight=global",
+            "renderer.training.width=1", "renderer.training.height=1", "renderer.training.records_per_path=3",
+            "transmittance=biased_raymarch", "batch_filter.n_batches=1", "renderer.log.tensorboard=false", *extra]
+
+
+def hand_vertices(scene, n: int):
+    """The hand path's camera origin, its first ``n`` vertices and the unit directions arriving at them (every
+    uniform U: each free flight is ``-log(1 - U) / SIGMA`` long), and the pdf of each sampled direction."""
+    cam, box = scene.camera, scene.grid.box
+    o, d = cam.generate_rays(torch.zeros(1, dtype=torch.long), torch.full((1, 2), U))
+    t0, _ = box.intersect(o, d)
+    step = -math.log1p(-U) / SIGMA
+    xs, ds, pdfs = [o + (t0 + step)[:, None] * d], [d], []
+    for _ in range(n - 1):
+        d, pdf = hg_sample(G, ds[-1], torch.full((1, 2), U))
+        xs.append(xs[-1] + step * d)
+        ds.append(d)
+        pdfs.append(pdf)
+    return o, xs, ds, pdfs, step
+
+
+def hand_nee(scene, x, d_in):
+    """Next-event estimate of the hand path's sun at ``x`` for arrival direction ``d_in`` (exact transmittance)."""
+    (sun,) = scene.lights
+    wi = -sun.direction[None]
+    box = scene.grid.box
+    T = torch.exp(-SIGMA * exit_distance(x, wi, box.lo, box.hi))
+    return sun.irradiance * (hg_pdf(G, (d_in * wi).sum(-1)) * T)[:, None]
+
+
 @pytest.mark.parametrize("target", ["full", "indirect"])
 def test_training_targets_match_a_hand_computed_path(tmp_path, target):
     """Constant medium, global majorant, every uniform 0.3: the training path is deterministic and its two
     records carry a (NEE_1 + a (NEE_2 + C)) and a (NEE_2 + C) (``cache_target=full``), or, with the direct
     light out of the cache (``indirect``), a (a NEE_2 + a (a NEE_3 + C)) and a (a NEE_3 + C): a terminating path adds
     its own next-event estimate, and a record's target leaves out its own; the pixel is a NEE_1 + C."""
-    np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
-    sigma, albedo, g, c, u = 0.08, 0.8, 0.6, torch.tensor([0.2, 0.3, 0.4]), 0.3
-    cfg = compose(["renderer=nrc", "scene=sun_front", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
-                   f"scene.volume.density_scale={sigma}", f"scene.volume.albedo={albedo}", f"scene.volume.g={g}",
-                   "scene.camera.width=1", "scene.camera.height=1", "scene.camera.position=[0,0,150]",
-                   "scene.camera.look_at=[0,0,0]", "scene.integrator.spp=1", "renderer.free_flight=global",
-                   "renderer.training.width=1", "renderer.training.height=1", "renderer.training.records_per_path=3",
-                   "renderer.training.extra_vertices=2", "transmittance=biased_raymarch", "batch_filter.n_batches=1",
-                   "renderer.log.tensorboard=false", f"renderer.cache_target={target}"])
+    cfg = compose(hand_config(tmp_path, "renderer.training.extra_vertices=2", f"renderer.cache_target={target}"))
     scene = load_scene(cfg.scene)
-    cache = StubCache(lambda x, d: c.expand_as(x).clone())
+    cache = StubCache(lambda x, d: C.expand_as(x).clone())
     r = NRCRenderer(scene, cfg, cache=cache)
-    r.frame_rng = lambda frame: ConstantRandom(u)
+    r.frame_rng = lambda frame: ConstantRandom(U)
     image, stats, _ = r.render_frame(0)
 
-    # Hand-traced training path (camera ray through the pixel at jitter (u, u)).
-    cam, box = scene.camera, scene.grid.box
-    o, d0 = cam.generate_rays(torch.zeros(1, dtype=torch.long), torch.full((1, 2), u))
-    t0, _ = box.intersect(o, d0)
-    step = -math.log1p(-u) / sigma
-    x1 = o + (t0 + step)[:, None] * d0
-    d1, _ = hg_sample(g, d0, torch.full((1, 2), u))
-    x2 = x1 + step * d1
-    (sun,) = scene.lights
-    wi = -sun.direction[None]
-
-    def nee(x, d_in):
-        T = torch.exp(-sigma * exit_distance(x, wi, box.lo, box.hi))
-        return sun.irradiance * (hg_pdf(g, (d_in * wi).sum(-1)) * T)[:, None]
-
+    # Hand-traced training path (camera ray through the pixel at jitter (U, U)).
+    _, (x1, x2, x3), (d0, d1, d2), _, _ = hand_vertices(scene, 3)
+    a = ALBEDO
     if target == "full":
         # The render path terminates at its first vertex: the pixel is the cache value (throughput 1).
-        torch.testing.assert_close(image.reshape(3), c)
-        t2 = albedo * (nee(x2, d1) + c)
-        t1 = albedo * nee(x1, d0) + albedo * t2
+        torch.testing.assert_close(image.reshape(3), C)
+        t2 = a * (hand_nee(scene, x2, d1) + C)
+        t1 = a * hand_nee(scene, x1, d0) + a * t2
     else:
-        torch.testing.assert_close(image.reshape(3), albedo * nee(x1, d0)[0] + c, rtol=1e-4, atol=1e-6)
-        d2, _ = hg_sample(g, d1, torch.full((1, 2), u))
-        x3 = x2 + step * d2
+        torch.testing.assert_close(image.reshape(3), a * hand_nee(scene, x1, d0)[0] + C, rtol=1e-4, atol=1e-6)
+        box = scene.grid.box
         assert bool(((x3 > box.lo) & (x3 < box.hi)).all())  # the third vertex is inside the medium
-        t2 = albedo * (albedo * nee(x3, d2) + c)
-        t1 = albedo * (albedo * nee(x2, d1) + t2)
+        t2 = a * (a * hand_nee(scene, x3, d2) + C)
+        t1 = a * (a * hand_nee(scene, x2, d1) + t2)
     (batch,) = cache.batches
     x, d, t = batch
     torch.testing.assert_close(x, torch.cat([x1, x2]), rtol=1e-5, atol=1e-4)
@@ -255,15 +276,8 @@ def test_training_queries_use_the_configured_weights(tmp_path, weights):
     with ``training.query_weights=raw`` (the EMA of the weights lags and, in a thick cloud, predicts
     darker than the raw weights: fed back through self-training it held the image at ~0.7 of the
     reference). Deterministic path as in the hand-computed test: records carry ``a^2 C`` and ``a C``."""
-    np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
-    albedo, c_ema, c_raw = 0.8, torch.tensor([0.2, 0.3, 0.4]), torch.tensor([1.0, 2.0, 3.0])
-    base = ["renderer=nrc", "scene=sun_front", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
-            "scene.volume.density_scale=0.08", f"scene.volume.albedo={albedo}", "scene.camera.width=1",
-            "scene.camera.height=1", "scene.camera.position=[0,0,150]", "scene.camera.look_at=[0,0,0]",
-            "scene.integrator.spp=1", "renderer.free_flight=global", "renderer.training.width=1",
-            "renderer.training.height=1", "renderer.training.records_per_path=3",
-            "renderer.training.extra_vertices=2", "transmittance=biased_raymarch", "batch_filter.n_batches=1",
-            "renderer.log.tensorboard=false", *FULL]
+    albedo, c_ema, c_raw = ALBEDO, torch.tensor([0.2, 0.3, 0.4]), torch.tensor([1.0, 2.0, 3.0])
+    base = hand_config(tmp_path, "renderer.training.extra_vertices=2", *FULL, g=None)
     targets = {}
     for mode in ("ema", weights):
         cfg = compose([*base, f"renderer.training.query_weights={mode}"])
@@ -436,32 +450,16 @@ def test_spread_rule_terminates_where_the_spread_exceeds_c_a0(tmp_path, margin):
     (4 pi) at the first vertex, and at the second spread^2 = |x1 - x2|^2 / p(d1). With spread_c half of
     spread^2 / a0 the path terminates at vertex 2 (pixel a NEE_1 + a C); with twice that it scatters there
     (its pixel also holds NEE_2) and terminates later."""
-    np.savez(tmp_path / "one.npz", density=np.ones((8, 8, 8), np.float32))
-    sigma, albedo, g, c, u = 0.08, 0.8, 0.6, torch.tensor([0.2, 0.3, 0.4]), 0.3
-    base = ["renderer=nrc", "scene=sun_front", "scene.volume.source=npz", f"scene.volume.path={tmp_path / 'one.npz'}",
-            f"scene.volume.density_scale={sigma}", f"scene.volume.albedo={albedo}", f"scene.volume.g={g}",
-            "scene.camera.width=1", "scene.camera.height=1", "scene.camera.position=[0,0,150]",
-            "scene.camera.look_at=[0,0,0]", "scene.integrator.spp=1", "renderer.free_flight=global",
-            "renderer.training.width=1", "renderer.training.height=1", "renderer.training.records_per_path=3",
-            "renderer.training.extra_vertices=0", "transmittance=biased_raymarch", "batch_filter.n_batches=1",
-            "renderer.log.tensorboard=false", "renderer.termination.rule=spread", *FULL]
+    base = hand_config(tmp_path, "renderer.training.extra_vertices=0", "renderer.termination.rule=spread", *FULL)
     scene = load_scene(compose(base).scene)
-    cam, box = scene.camera, scene.grid.box
-    o, d0 = cam.generate_rays(torch.zeros(1, dtype=torch.long), torch.full((1, 2), u))
-    t0, _ = box.intersect(o, d0)
-    step = -math.log1p(-u) / sigma
-    x1 = o + (t0 + step)[:, None] * d0
-    d1, pdf1 = hg_sample(g, d0, torch.full((1, 2), u))
+    o, (x1, _), (d0, _), (pdf1,), step = hand_vertices(scene, 2)
     a0 = float(((x1 - o) ** 2).sum()) / (4 * math.pi)
     spread2 = step * step / float(pdf1.reshape(-1)[0])
     cfg = compose([*base, f"renderer.termination.spread_c={margin * spread2 / a0}"])
-    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: c.expand_as(x).clone()))
-    r.frame_rng = lambda frame: ConstantRandom(u)
+    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
+    r.frame_rng = lambda frame: ConstantRandom(U)
     image, _, _ = r.render_frame(0)
-    (sun,) = scene.lights
-    wi = -sun.direction[None]
-    nee1 = sun.irradiance * hg_pdf(g, (d0 * wi).sum(-1)) * torch.exp(-sigma * exit_distance(x1, wi, box.lo, box.hi))
-    at_2 = albedo * nee1.reshape(3) + albedo * c
+    at_2 = ALBEDO * hand_nee(scene, x1, d0).reshape(3) + ALBEDO * C
     if margin < 1:
         torch.testing.assert_close(image.reshape(3), at_2, rtol=1e-4, atol=1e-6)
     else:

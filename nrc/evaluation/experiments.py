@@ -408,7 +408,7 @@ def headline(summaries: dict[str, tuple[str, dict]]) -> list[str]:
         return []
     label, summ = summaries[name]
     den, raw = _ratio(summ, HEADLINE + "+oidn", "pt+oidn"), _ratio(summ, HEADLINE, "pt")
-    row_den, row_pt = _row(summ, HEADLINE + "+oidn"), None
+    row_den = _row(summ, HEADLINE + "+oidn")
     if den is None or row_den is None:
         return []
     pts = [r for r in summ["rows"] if r["mode"] == "single" and r.get("denoised") and r["renderer"] == "pt"]

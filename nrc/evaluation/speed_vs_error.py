@@ -244,7 +244,7 @@ def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
                     cpu.append(now - clock["c"])
                 clock["c"] = time.process_time()
 
-            for k in range(getattr(args, "nrc_repeats", 1)):  # independent runs (their own seeds), frames pooled
+            for k in range(args.nrc_repeats):  # independent runs (their own seeds), frames pooled
                 nrc_run(scene, cfg, spp, SEED_BASE + spp + 7919 * k, args.warmup + args.frames, False, cb)
             emit(spp, frames, times, cpu)
     return rows

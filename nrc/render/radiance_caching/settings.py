@@ -82,7 +82,7 @@ class NRCSettings:
             brick=cfg.get_raw("brick", "auto"),  # validated by nrc.render.wavefront.wavefront_majorants
             free_flight=cfg.get_choice("free_flight", ["brick", "global"], "brick"),
             termination=Termination.from_config(cfg.block("termination")),
-            cache_target=cfg.get_choice("cache_target", CACHE_TARGETS, "full"),
+            cache_target=cfg.get_choice("cache_target", CACHE_TARGETS, "indirect"),
             light_selection=cfg.get_choice("light_selection", list(SELECTIONS), "uniform"),
             training=TrainingSettings(
                 **_training_size(tr),

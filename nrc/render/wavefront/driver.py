@@ -120,6 +120,17 @@ class Wavefront:
         rec = self.harvest.n_pixels + I[ly.i("rec_base")] + j - 1
         return torch.where((j > 0) & (I[ly.i("rec_base")] >= 0), rec, dest)
 
+    def _direct_rows(self, I: Tensor) -> Tensor:
+        """Accumulator rows of the given slots' current contributions, except that with ``cache_target=indirect``
+        the direct light of a recorded vertex (``rec >= 0``: set at the vertex, kept until the next one) goes to
+        that record's direct-light row."""
+        rows = self._rows(I, self._current_row(I))
+        hv = self.harvest
+        if hv is None or hv.direct_base is None:
+            return rows
+        rec = I[self.layout.i("rec")]
+        return torch.where(rec >= 0, hv.direct_base + rec, rows)
+
     def _current_row(self, I: Tensor) -> Tensor | int:
         ly = self.layout
         return accumulator_row(I[ly.i("rec_base")], I[ly.i("n")], ly.rows - 1) if ly.nrc else 0
@@ -138,13 +149,8 @@ class Wavefront:
                 pdf = Fd[ly.f("pdf")][e]
                 w = torch.where(pdf > 0, power_heuristic(pdf, self.lights.env_pdf(d)), torch.ones_like(pdf))
                 Ie = Id[:, e]
-                rows = self._rows(Ie, self._current_row(Ie))
-                if self.harvest is not None and self.harvest.direct_base is not None:
-                    # escaped from a recorded vertex n (a training path's 1..V): that record's direct light
-                    n, base = Ie[ly.i("n")], Ie[ly.i("rec_base")]
-                    direct = (base >= 0) & (n >= 1) & (n <= ly.rows - 1)
-                    rows = torch.where(direct, self.harvest.direct_base + base + n - 1, rows)
-                acc.index_add_(0, rows, Fd[ly.f("beta")][:, e].T * self.lights.env_radiance(d) * w[:, None])
+                # escaped from a recorded vertex: the MIS-weighted environment is that record's direct light
+                acc.index_add_(0, self._direct_rows(Ie), Fd[ly.f("beta")][:, e].T * self.lights.env_radiance(d) * w[:, None])
         c = self.counts
         c["tracking_steps"] += int(Id[ly.i("cnt")].sum())
         c["shadow_steps"] += int(Id[ly.i("n_shadow_steps")].sum())
@@ -185,12 +191,8 @@ class Wavefront:
             qd = (Is[ly.i("shadow")] == 2).nonzero().squeeze(1)
             if len(qd):
                 Iq = Is[:, qd]
-                rows = self._rows(Iq, self._current_row(Iq))
-                if hv is not None and hv.direct_base is not None:  # a recorded vertex's own next-event estimate
-                    rec = Iq[ly.i("rec")]
-                    rows = torch.where(rec >= 0, hv.direct_base + rec, rows)
                 self.shadow.push(Fs[ly.f("o")][:, qd].T.contiguous(), Fs[ly.f("wi")][:, qd].T.contiguous(),
-                                 Fs[ly.f("tse")][qd], Fs[ly.f("csh")][:, qd].T, rows, acc)
+                                 Fs[ly.f("tse")][qd], Fs[ly.f("csh")][:, qd].T, self._direct_rows(Iq), acc)
                 Is[ly.i("shadow"), qd] = 0
         F.index_copy_(1, sc, Fs)
         I.index_copy_(1, sc, Is)
