@@ -162,4 +162,4 @@ def test_power_selection_without_power_is_uniform():
     ls = LightSampler(lights, torch.device("cpu"), "power", (-torch.ones(3), torch.ones(3)))
     assert ls.pmf == [0.5, 0.5]
     with pytest.raises(ValueError, match="light selection must be one of"):
-        LightSampler(lights, torch.device("cpu"), "ris")
+        LightSampler(lights, torch.device("cpu"), "stochastic")

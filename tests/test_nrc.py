@@ -149,6 +149,27 @@ def test_zero_indirect_cache_is_a_path_tracer_to_the_terminal_vertex(backend):
         assert_images_agree(full, pt)
 
 
+THREE_LIGHTS = ["scene.lights=[{type:directional,direction:[-0.6,-0.55,-0.35],irradiance:[2.6,2.5,2.3]},"
+                "{type:environment,radiance:[0.35,0.5,0.8],path:null,scale:1.0},"
+                "{type:point,position:[0,-42,30],intensity:[60000,40000,30000]}]"]
+
+
+@pytest.mark.parametrize("backend", ["eager", "step"])
+def test_zero_indirect_cache_with_ris_and_equiangular_is_a_path_tracer(backend):
+    """The same property with the light sampling of issue 16 on the NRC side only: RIS over a sun, a sky and a
+    point light, the point light by equi-angular sampling along the render paths' segments (the direct light of
+    vertices 1 and 2 comes from the segments before them, vertex 2's sun and sky from its own estimate); the
+    path tracer to vertex 2 with uniform selection and next-event estimation of all three at the vertices.
+    (Leaving out the camera rays' equi-angular estimate, -30 %, fails it.)"""
+    scene = [*ZERO, *THREE_LIGHTS, "scene.integrator.spp=128"]
+    pt = render_images([*scene, "scene.integrator.max_scatter=2"], SEEDS, "pt", backend=backend)
+    nrc = render_images([*scene, "renderer.termination.min_vertices=2", "renderer.cache_target=indirect",
+                         "renderer.light_selection=ris", "renderer.ris.candidates=4",
+                         "renderer.point_light_sampling=equiangular"], SEEDS,
+                        "nrc", lambda scene: lambda x, d: torch.zeros_like(x), backend=backend)
+    assert_images_agree(nrc, pt)
+
+
 @pytest.mark.slow
 def test_compiled_nrc_matches_the_eager_nrc_and_the_oracle(fresh_machines):
     """A real compile of the NRC step (cold cache): the oracle-cache NRC image on ``backend=compiled`` agrees

@@ -350,6 +350,11 @@ SPEED_RUNS = [("side-lit Disney cloud (sun + sky, g 0.5), 480 x 270", "oidn_480x
                "light_selection_160x90_side_lit"),
               ("light selection uniform against power: a point light below the Disney cloud with a dim sun and sky, "
                "160 x 90", "light_selection_160x90_three_lights"),
+              ("light selection uniform, power and RIS (4 and 8 candidates): the many-lights preset (16 point lights "
+               "below the cumulus, dim sky), 160 x 90, eager", "light_sampling_160x90_many_lights"),
+              ("point lights by next-event estimation against equi-angular sampling: the lantern preset (a point light "
+               "inside the cumulus), 80 x 45, eager", "light_sampling_80x45_lantern"),
+              ("the lantern in a thinned cloud (density 0.1), 80 x 45, eager", "light_sampling_80x45_lantern_thin"),
               ("front-lit preset (sun_front), raw path tracer, 480 x 270 (older code)", "speed_480x270_v2"),
               ("front-lit preset (sun_front), raw path tracer, 160 x 90 (older code)", "speed_160x90_v2"),
               ("front-lit preset, 160 x 90, the default sweep (encodings, extra inputs, transmittance estimators; "

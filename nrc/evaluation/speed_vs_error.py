@@ -85,6 +85,9 @@ PRESETS: dict[str, list[str]] = {
         "scene.lights.0.intensity=[3000,2900,2800]", "scene.camera.width=160", "scene.camera.height=90",
     ],
     "cumulus": ["scene=sun", "scene.camera.width=160", "scene.camera.height=90"],  # the default scene
+    # the light-sampling scenes of docs/path_tracer.md (the procedural cumulus)
+    "many_lights": ["scene=many_lights", "scene.camera.width=160", "scene.camera.height=90"],
+    "lantern": ["scene=lantern", "scene.camera.width=80", "scene.camera.height=45"],
     "none": [],
 }
 # name -> Hydra overrides. The pt configurations together (their Pareto front) are the baseline of the ratios.

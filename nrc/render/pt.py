@@ -6,10 +6,14 @@ Estimator (per camera sample; SCENE.md conventions):
   ``renderer.free_flight=global``), bricks with a zero majorant crossed in one step; at a real collision the
   path scatters (throughput x albedo), up to ``integrator.max_scatter`` real scattering events.
 * Next-event estimation at every real scattering vertex: one light chosen (``renderer.light_selection``:
-  uniformly or by power) among the scene's lights, its transmittance by ratio tracking inside the step (``transmittance=ratio``) or by the configured
-  estimator on queued batches of ``renderer.shadow_batch`` rays. Environment light is also gathered by
-  phase-sampled directions that escape the box, combined with NEE by the power heuristic (camera rays that
-  escape see the environment with weight 1).
+  uniformly, by power, or by resampling ``renderer.ris.candidates`` power samples by their unshadowed
+  contribution, RIS) among the scene's lights, its transmittance by ratio tracking inside the step
+  (``transmittance=ratio``) or by the configured estimator on queued batches of ``renderer.shadow_batch`` rays.
+  Environment light is also gathered by phase-sampled directions that escape the box, combined with NEE by the
+  power heuristic (camera rays that escape see the environment with weight 1).
+* With ``renderer.point_light_sampling=equiangular`` the point lights leave the vertices' next-event estimate:
+  their direct light is estimated along every flight segment by equi-angular distance sampling
+  (:mod:`nrc.transport.equiangular`).
 * Optional Russian roulette on the throughput (off by default).
 
 Execution: the shared transport core (:mod:`nrc.render.wavefront`) -- the same step code for
@@ -40,7 +44,7 @@ from nrc.render.wavefront import BACKENDS, build_core, camera_paths
 from nrc.render.wavefront.driver import Wavefront
 from nrc.render.wavefront.machine import compiled_graphs
 from nrc.scene import Scene
-from nrc.transport.light_sampling import SELECTIONS, LightSampler
+from nrc.transport.light_sampling import LightSamplingSettings
 from nrc.transport.rng import path_key, uniforms
 from nrc.transport.transmittance import make_transmittance
 
@@ -72,8 +76,9 @@ class PathTracerSettings:
     """``auto`` with a cold cache: renders of fewer camera samples stay eager."""
     steps_per_call: int
     """Tracking steps unrolled per compiled call."""
-    light_selection: str = "uniform"
-    """Which light a vertex's next-event estimate samples: ``uniform`` | ``power`` (nrc.transport.light_sampling)."""
+    light_sampling: LightSamplingSettings = LightSamplingSettings()
+    """How lights are sampled: ``light_selection`` (``uniform`` | ``power`` | ``ris``), ``ris.candidates``,
+    ``point_light_sampling`` (``none`` | ``equiangular``) (nrc.transport.light_sampling)."""
 
     @classmethod
     def from_config(cls, renderer: Any) -> PathTracerSettings:
@@ -90,7 +95,7 @@ class PathTracerSettings:
             backend=cfg.get_choice("backend", list(BACKENDS)),
             compile_min_samples=cfg.get_int("compile_min_samples", lo=0),
             steps_per_call=cfg.get_int("steps_per_call", lo=1),
-            light_selection=cfg.get_choice("light_selection", list(SELECTIONS)),
+            light_sampling=LightSamplingSettings.from_config(cfg),
         )
         for block in (rr, cfg):
             block.finish()
@@ -114,12 +119,13 @@ class PathTracer:
         self.slots, self.shadow_batch = st.slots, st.shadow_batch
         self.free_flight, self.backend, self.steps_per_call = st.free_flight, st.backend, st.steps_per_call
         self.transmittance = make_transmittance(cfg.get("transmittance"))
-        self.lights = LightSampler.for_scene(scene, st.light_selection)
+        self.lights = st.light_sampling.sampler(scene)
         self.spp = scene.integrator.spp
         self.max_scatter = scene.integrator.max_scatter
         self.core = build_core(scene.grid, self.lights, scene.albedo, scene.g, self.max_scatter, self.transmittance,
                                st.brick, st.free_flight, st.backend, st.steps_per_call, st.compile_min_samples,
-                               st.rr_start if st.russian_roulette else None)
+                               st.rr_start if st.russian_roulette else None,
+                               point_lights=st.light_sampling.equiangular_points(scene))
         self.majorants = self.core.majorants
 
     def _camera_paths(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -136,9 +142,10 @@ class PathTracer:
         total = cam.num_pixels * self.spp
         machine, backend, reason = self.core.choose(total)
         image = torch.zeros(cam.num_pixels, 3, device=self.device)
+        gen = torch.Generator(device=self.device).manual_seed(self.scene.integrator.seed)
         wf = Wavefront(machine, self.core.inputs, self.lights, self.slots,
-                       self.core.shadow_queue(machine, self.shadow_batch,
-                                              torch.Generator(device=self.device).manual_seed(self.scene.integrator.seed)))
+                       self.core.shadow_queue(machine, self.shadow_batch, gen), None,
+                       self.core.equiangular_queue(self.shadow_batch, gen))
         bar = tqdm(total=total, unit="sample", unit_scale=True, disable=not progress, desc="pt", leave=False,
                    mininterval=1.0)
         start = time.perf_counter()
@@ -168,5 +175,6 @@ class PathTracer:
             "samples_per_second": total / elapsed if elapsed > 0 else math.inf,
             **{f"time_{k}_s": v for k, v in wf.timers.items()},
             **wf.counts,
+            **self.settings.light_sampling.metrics(self.lights),
         }
         return RenderResult(image=img.cpu().numpy(), metrics=metrics)

@@ -9,6 +9,14 @@ One light is chosen among the lights the scene has (no light, no shadow rays), b
   ``I 2 pi (1 - sqrt(1 - R^2 / r^2))`` (the solid angle the sphere subtends), inside the sphere ``4 pi I``;
   a uniform sky ``pi R^2 4 pi L``; a lat-long map ``pi R^2`` times its radiance integrated over the sphere.
   Lights that send nothing are never chosen; when none sends anything the choice is uniform.
+* ``ris`` (``renderer.ris.candidates`` = ``M``): resampled importance sampling (Talbot et al. 2005; the light
+  sampling of Q2VKPT). ``M`` candidates ``x_i`` are drawn from the source distribution ``p_src`` (the ``power``
+  choice times the chosen light's own sampling pdf), weighted ``w_i = p_hat(x_i) / p_src(x_i)`` with
+  ``p_hat`` the luminance of the unshadowed contribution (emitted radiance x ``1/r^2`` x phase value, no
+  transmittance); one ``y`` is kept with probability ``w_y / sum w`` and its shadow ray traced, weighted
+  ``f(y) sum w / (M p_hat(y))`` (:func:`resample`). Unbiased for every ``M`` (``M = 1`` is ``power``). MIS
+  against phase sampling of the environment uses ``p_src`` in both weights (the RIS pdf of ``y`` is not
+  tractable), so the two weights still sum to one for every direction.
 
 For the chosen light a direction ``wi`` (unit, from the shading point towards the light) is produced with:
 
@@ -25,6 +33,7 @@ phase sampling, whose escape contributions use :meth:`LightSampler.env_pdf`).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -33,7 +42,56 @@ from torch import Tensor
 from nrc.transport.lights import DirectionalLight, EnvironmentLight, Light, PointLight
 
 _LUMINANCE = (0.2126, 0.7152, 0.0722)
-SELECTIONS = ("uniform", "power")
+SELECTIONS = ("uniform", "power", "ris")
+POINT_LIGHT_SAMPLING = ("none", "equiangular")
+
+
+@dataclass(frozen=True)
+class LightSamplingSettings:
+    """How the renderers sample lights: the ``renderer`` keys ``light_selection``, ``ris.candidates`` and
+    ``point_light_sampling`` (``conf/renderer/pt.yaml``, ``nrc.yaml``; one reader for both renderers)."""
+
+    selection: str = "uniform"
+    """``uniform`` | ``power`` | ``ris`` (module docstring)."""
+    candidates: int = 4
+    """``ris``: candidates ``M`` per next-event estimate (``>= 1``; ignored by the other selections; 4 was the
+    most efficient on the many-lights preset, docs/path_tracer.md)."""
+    point_lights: str = "none"
+    """``none`` | ``equiangular``: point lights' direct light by equi-angular distance sampling along every
+    flight segment instead of next-event estimation at the vertices (:mod:`nrc.transport.equiangular`)."""
+
+    @classmethod
+    def from_config(cls, cfg, defaults: bool = False) -> LightSamplingSettings:
+        """Read from a :class:`nrc.config.ConfigReader` of the ``renderer`` block (``defaults``: missing keys take
+        this class's defaults; otherwise they are required, their defaults living in the YAML)."""
+        d = cls()
+        kw = {"default": d.selection} if defaults else {}
+        selection = cfg.get_choice("light_selection", list(SELECTIONS), **kw)
+        ris = cfg.block("ris")
+        candidates = ris.get_int("candidates", *((d.candidates,) if defaults else ()), lo=1)
+        ris.finish()
+        point = cfg.get_choice("point_light_sampling", list(POINT_LIGHT_SAMPLING),
+                               **({"default": d.point_lights} if defaults else {}))
+        return cls(selection, candidates, point)
+
+    def equiangular_points(self, scene) -> tuple[PointLight, ...]:
+        """The point lights sampled equi-angularly (all of them under ``equiangular``, none otherwise)."""
+        if self.point_lights != "equiangular":
+            return ()
+        return tuple(lt for lt in scene.lights if isinstance(lt, PointLight))
+
+    def metrics(self, sampler: LightSampler) -> dict:
+        """What ``metrics.json`` (and TensorBoard's ``light/``) record of the light sampling: the settings, the
+        lights the vertices' next-event estimate chooses among, and the entropy (bits) of that choice's
+        probabilities (for ``ris``: of its source distribution; ``log2`` of the light count for ``uniform``)."""
+        return {"light_selection": self.selection, "ris_candidates": self.candidates if self.selection == "ris" else 1,
+                "point_light_sampling": self.point_lights, "nee_lights": sampler.n_lights,
+                "light_selection_entropy_bits": sampler.entropy_bits,
+                "light_selection_pmf": [round(float(p), 6) for p in sampler.pmf]}
+
+    def sampler(self, scene) -> LightSampler:
+        """The next-event sampler of ``scene``'s lights (without its point lights under ``equiangular``)."""
+        return LightSampler.for_scene(scene, self.selection, self.candidates, self.point_lights == "equiangular")
 
 
 def _lum(rgb: Tensor) -> float:
@@ -163,19 +221,24 @@ class LightSampler:
 
     Args:
         lights: the scene's lights (any number, including none).
-        selection: ``uniform`` or ``power`` (module docstring).
-        bounds: ``(lo, hi)`` of the medium's box, for ``power``.
+        selection: ``uniform``, ``power`` or ``ris`` (module docstring; :meth:`sample` draws from the source
+            distribution, ``power`` for ``ris``, whose resampling is :func:`resample`).
+        bounds: ``(lo, hi)`` of the medium's box, for ``power`` and ``ris``.
+        candidates: ``ris``: candidates per estimate.
     """
 
     def __init__(self, lights: tuple[Light, ...], device: torch.device, selection: str = "uniform",
-                 bounds: tuple[Tensor, Tensor] | None = None) -> None:
+                 bounds: tuple[Tensor, Tensor] | None = None, candidates: int = 1) -> None:
         if selection not in SELECTIONS:
             raise ValueError(f"light selection must be one of {', '.join(SELECTIONS)}, got {selection!r}")
-        if selection == "power" and bounds is None:
-            raise ValueError("power light selection needs the medium's bounds")
+        if selection != "uniform" and bounds is None:
+            raise ValueError(f"{selection} light selection needs the medium's bounds")
+        if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
+            raise ValueError(f"RIS candidates must be an integer >= 1, got {candidates!r}")
         self.device = device
         self.lights = tuple(lights)
         self.selection, self.bounds = selection, bounds
+        self.candidates = candidates if selection == "ris" else 1
         self.directional = [lt for lt in lights if isinstance(lt, DirectionalLight)]
         self.points = [lt for lt in lights if isinstance(lt, PointLight)]
         envs = [lt for lt in lights if isinstance(lt, EnvironmentLight)]
@@ -190,7 +253,7 @@ class LightSampler:
         self.has_env = self.has_uniform_env or bool(self.env_maps)
         # selection probabilities in light order (directional, point, uniform sky, maps)
         self.pmf = [1.0 / self.n_lights] * self.n_lights if self.n_lights else []
-        if selection == "power" and self.n_lights:
+        if selection != "uniform" and self.n_lights:
             lo, hi = bounds
             powers = light_powers(self.lights, (lo + hi) / 2, float(torch.linalg.vector_norm(hi - lo)) / 2)
             total = sum(powers)
@@ -200,14 +263,23 @@ class LightSampler:
         self._cdf = torch.cumsum(self._pmf.double(), 0).float()
 
     @classmethod
-    def for_scene(cls, scene, selection: str = "uniform") -> LightSampler:
-        """The sampler of a scene's lights, bounded by its medium's box."""
+    def for_scene(cls, scene, selection: str = "uniform", candidates: int = 1,
+                  exclude_points: bool = False) -> LightSampler:
+        """The sampler of a scene's lights, bounded by its medium's box (``exclude_points``: without the point
+        lights, whose direct light equi-angular sampling takes over)."""
         box = scene.grid.box
-        return cls(scene.lights, scene.device, selection, (box.lo, box.hi))
+        lights = tuple(lt for lt in scene.lights if not (exclude_points and isinstance(lt, PointLight)))
+        return cls(lights, scene.device, selection, (box.lo, box.hi), candidates)
 
     def with_lights(self, lights: tuple[Light, ...]) -> LightSampler:
         """The same selection for other lights (an animated sun)."""
-        return LightSampler(lights, self.device, self.selection, self.bounds)
+        return LightSampler(lights, self.device, self.selection, self.bounds, self.candidates)
+
+    @property
+    def entropy_bits(self) -> float:
+        """Entropy (bits) of the selection probabilities: ``log2 n`` for ``uniform``, less when the choice
+        concentrates on a few lights (0 with one light or none)."""
+        return max(0.0, float(-sum(p * math.log2(p) for p in self.pmf if p > 0)))
 
     @property
     def env_select(self) -> list[float]:
@@ -292,6 +364,57 @@ class LightSampler:
         return LightSample(wi, dist, weight, light_pdf, is_env)
 
 
+def luminance3(c: tuple) -> Tensor:
+    """Rec. 709 luminance of an RGB triple in component form."""
+    return _LUMINANCE[0] * c[0] + _LUMINANCE[1] * c[1] + _LUMINANCE[2] * c[2]
+
+
+Candidate = tuple  # (wi (3-tuple), distance, weight (3-tuple), light_pdf, is_env), component form
+
+
+def resample(candidates: list[Candidate], phase_of: Callable[[tuple], Tensor], u: Tensor) -> tuple[Candidate, Tensor]:
+    """Resampled importance sampling over next-event candidates (module docstring, ``ris``).
+
+    Each candidate is a sample of the source distribution as :meth:`LightTable.sample` returns it: its
+    ``weight`` is the light's contribution over ``p_src`` (without phase and transmittance), so its RIS weight
+    is ``w_i = p_hat / p_src = luminance(weight_i) x phase(wi_i)``. One candidate is kept with probability
+    ``w / sum w`` (by the uniform ``u``: the first whose running sum exceeds ``u sum w``, else the last with a
+    positive weight) and its ``weight`` replaced by ``weight_y sum w / (M luminance(weight_y) phase(wi_y))``,
+    so that the caller's ``weight x phase x transmittance`` is the RIS estimate ``f(y) sum w / (M p_hat(y))``.
+    Where every weight is zero the kept weight is zero. ``light_pdf`` stays the source pdf (the MIS weights').
+
+    Returns:
+        ``(chosen candidate, sum w)`` (all ``(N,)`` components).
+    """
+    ws = [luminance3(c[2]) * phase_of(c[0]) for c in candidates]
+    total = ws[0]
+    for w in ws[1:]:
+        total = total + w
+    target = u * total
+    run = torch.zeros_like(total)
+    picked = torch.zeros_like(total, dtype=torch.bool)
+    chosen, last = candidates[0], candidates[0]
+    chosen_w, last_w = ws[0], ws[0]
+    for c, w in zip(candidates, ws):
+        run = run + w
+        take = ~picked & (w > 0) & (target < run)
+        chosen, chosen_w = _select(take, c, chosen), torch.where(take, w, chosen_w)
+        pos = w > 0
+        last, last_w = _select(pos, c, last), torch.where(pos, w, last_w)
+        picked = picked | take
+    chosen, chosen_w = _select(picked, chosen, last), torch.where(picked, chosen_w, last_w)
+    # weight / (luminance x phase) = weight / chosen_w; times sum w / M
+    scale = torch.where(chosen_w > 0, total / (len(candidates) * chosen_w.clamp(min=1e-30)), torch.zeros_like(total))
+    wi, dist, weight, pdf, env = chosen
+    return (wi, dist, tuple(c * scale for c in weight), pdf, env), total
+
+
+def _select(m: Tensor, a: Candidate, b: Candidate) -> Candidate:
+    wi = tuple(torch.where(m, x, y) for x, y in zip(a[0], b[0]))
+    weight = tuple(torch.where(m, x, y) for x, y in zip(a[2], b[2]))
+    return wi, torch.where(m, a[1], b[1]), weight, torch.where(m, a[3], b[3]), torch.where(m, a[4], b[4])
+
+
 def power_heuristic(a: Tensor, b: Tensor | float) -> Tensor:
     """Power heuristic ``a^2 / (a^2 + b^2)`` (elementwise), 1 where both are zero."""
     a2, b2 = a * a, b * b
@@ -314,8 +437,10 @@ class LightTable:
 
     Layout of :attr:`values`: per directional light ``-direction (3), irradiance (3)``; per point light
     ``position (3), intensity (3)``; with a uniform sky its radiance ``(3)`` and the NEE pdf of any
-    direction, ``P(select sky) / (4 pi)``; with ``power`` selection (and several lights) then every light's
-    selection probability, in light order (the uniform choice needs none).
+    direction, ``P(select sky) / (4 pi)``; with ``power`` or ``ris`` selection (and several lights) then every
+    light's selection probability, in light order (the uniform choice needs none). ``ris`` draws
+    :attr:`candidates` samples of that source distribution and :func:`resample` keeps one
+    (:meth:`sample_ris`).
 
     Args:
         lights: the sampler whose lights are read.
@@ -328,7 +453,9 @@ class LightTable:
         self.has_uniform_env = lights.has_uniform_env
         self.n_lights = lights.n_lights
         self.has_env = lights.has_env
-        self.selection = lights.selection if lights.n_lights > 1 else "uniform"
+        self.selection = ("power" if lights.selection == "ris" else lights.selection) if lights.n_lights > 1 \
+            else "uniform"
+        self.candidates = lights.candidates
         vals: list[float] = []
         for lt in lights.directional:
             vals += [float(v) for v in (-lt.direction).tolist()] + [float(v) for v in lt.irradiance.tolist()]
@@ -342,15 +469,31 @@ class LightTable:
 
     @property
     def structure(self) -> tuple:
-        """What a compiled step depends on: ``(directional lights, point lights, uniform sky)``, and ``"power"``
-        for the power selection of several lights."""
+        """What a compiled step depends on: ``(directional lights, point lights, uniform sky)``, ``"power"``
+        for the power (or ``ris`` source) selection of several lights, and ``("ris", M)`` for ``M > 1``
+        candidates."""
         base = (self.n_directional, self.n_points, self.has_uniform_env)
-        return (*base, "power") if self.selection == "power" else base
+        base = (*base, "power") if self.selection == "power" else base
+        return (*base, ("ris", self.candidates)) if self.candidates > 1 else base
+
+    @property
+    def lanes_per_candidate(self) -> int:
+        """Uniforms one :meth:`sample` uses: the light choice (several lights) and a sky direction (2)."""
+        return (self.n_lights > 1) + 2 * self.has_uniform_env
 
     @property
     def lanes(self) -> int:
-        """Uniforms :meth:`sample` uses: the light choice (several lights) and a sky direction (2)."""
-        return (self.n_lights > 1) + 2 * self.has_uniform_env
+        """Uniforms :meth:`sample_ris` uses: :attr:`candidates` samples and, for ``M > 1``, the pick."""
+        return self.candidates * self.lanes_per_candidate + (self.candidates > 1)
+
+    def sample_ris(self, values: list, x: tuple, u: list, phase_of: Callable[[tuple], Tensor]) -> Candidate:
+        """:meth:`sample` for one candidate, :func:`resample` over :attr:`candidates` of them otherwise
+        (``u``: :attr:`lanes` uniforms; ``phase_of(wi)`` the phase value towards ``wi``)."""
+        k = self.lanes_per_candidate
+        if self.candidates == 1:
+            return self.sample(values, x, u[:k])
+        cands = [self.sample(values, x, u[j * k:(j + 1) * k]) for j in range(self.candidates)]
+        return resample(cands, phase_of, u[self.candidates * k])[0]
 
     def sample(self, values: list, x: tuple, u: list) -> tuple[tuple, Tensor, tuple, Tensor, Tensor]:
         """``(wi, distance, weight, light_pdf, is_env)`` as :meth:`LightSampler.sample`, in component form,

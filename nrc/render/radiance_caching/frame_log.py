@@ -17,6 +17,11 @@ import numpy as np
 from nrc.io.png import DisplaySettings, tonemap
 
 
+# per-frame light-sampling counters and settings logged under TensorBoard's light/ (nrc.transport.light_sampling)
+LIGHT_SCALARS = ("shadow_rays", "equiangular_segments", "ris_candidates", "light_selection_entropy_bits",
+                 "nee_lights")
+
+
 class FrameLog:
     """Collects per-frame statistics (``history``) and mirrors them to TensorBoard when ``log_dir`` is set."""
 
@@ -49,6 +54,8 @@ class FrameLog:
                 self.writer.add_scalar(f"time/{key[5:-2]}", value, frame)
             elif key in ("loss", "rel_mse", "mse") and value is not None:
                 self.writer.add_scalar("loss/frame" if key == "loss" else f"error/{key}", value, frame)
+            elif key in LIGHT_SCALARS and value is not None:
+                self.writer.add_scalar(f"light/{key}", value, frame)
         if (self.image_every and frame % self.image_every == 0) or force_images:
             for name, img in images.items():
                 if name not in self.exposure:

@@ -55,7 +55,7 @@ from nrc.render.wavefront import build_core, camera_paths
 from nrc.render.wavefront.driver import Harvest, Wavefront
 from nrc.render.wavefront.step import NRCRule
 from nrc.scene import Scene
-from nrc.transport.light_sampling import LightSampler
+from nrc.transport.light_sampling import LightSampler, LightSamplingSettings
 from nrc.transport.rng import path_key
 
 
@@ -129,7 +129,8 @@ class NRCPathTracer:
     def __init__(self, scene: Scene, transmittance: object, termination: Termination, records_per_path: int,
                  extra_vertices: int, slots: int, shadow_batch: int, brick: object = "auto",
                  free_flight: str = "brick", backend: str = "eager", steps_per_call: int = 1,
-                 compile_min_samples: int = 0, cache_target: str = "full", light_selection: str = "uniform") -> None:
+                 compile_min_samples: int = 0, cache_target: str = "full",
+                 light_sampling: LightSamplingSettings = LightSamplingSettings()) -> None:
         self.scene = scene
         self.device = scene.device
         self.transmittance = transmittance
@@ -139,7 +140,7 @@ class NRCPathTracer:
         self.slots = slots
         self.shadow_batch = shadow_batch
         self.cache_target = cache_target
-        self.light_selection = light_selection
+        self.light_sampling = light_sampling
         self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples)
         self._cores: dict = {}
         self.core = self._core(RandomSource.counter_uniforms)
@@ -151,9 +152,10 @@ class NRCPathTracer:
         if uniforms not in self._cores:
             s = self.scene
             self._cores[uniforms] = build_core(
-                s.grid, LightSampler.for_scene(s, self.light_selection), s.albedo, s.g, s.integrator.max_scatter,
+                s.grid, self.light_sampling.sampler(s), s.albedo, s.g, s.integrator.max_scatter,
                 self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V, self.cache_target),
-                termination=self.termination, uniforms=uniforms, inline_shadows=False)
+                termination=self.termination, uniforms=uniforms, inline_shadows=False,
+                point_lights=self.light_sampling.equiangular_points(s))
             self._cores[uniforms].warm_fraction = 1 / 12  # see Core.warm_fraction
         return self._cores[uniforms]
 
@@ -201,7 +203,8 @@ class NRCPathTracer:
                      torch.zeros(ps.n_train * V, dtype=torch.bool, device=dev),
                      torch.zeros(ps.n_train, dtype=torch.bool, device=dev), discard + 1 if indirect else None)
         shadow = core.shadow_queue(machine, self.shadow_batch, rng.generator)
-        wf = Wavefront(machine, core.inputs_for(lights), lights, self.slots, shadow, hv)
+        wf = Wavefront(machine, core.inputs_for(lights), lights, self.slots, shadow, hv,
+                       core.equiangular_queue(self.shadow_batch, rng.generator))
         layout = machine.step.layout
         wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, discard), acc)
         counts = dict(wf.counts)

@@ -52,7 +52,7 @@ from nrc.render.radiance_caching.batch_filter import make_batch_filter
 from nrc.render.radiance_caching.checkpoint import (CheckpointError, check_config, load_checkpoint, plain,
                                                     save_checkpoint)
 from nrc.camera import Camera
-from nrc.render.radiance_caching.frame_log import FrameLog
+from nrc.render.radiance_caching.frame_log import LIGHT_SCALARS, FrameLog
 from nrc.render.radiance_caching.inference_filter import filtered_query
 from nrc.render.radiance_caching.paths import NRCPathTracer, PathSet
 from nrc.render.radiance_caching.settings import NRCSettings
@@ -157,9 +157,9 @@ class NRCRenderer:
         self.tracer = NRCPathTracer(scene, self.transmittance, st.termination, tr.records_per_path,
                                     tr.extra_vertices, st.slots, st.shadow_batch, st.brick, st.free_flight,
                                     st.backend, st.steps_per_call, st.compile_min_samples, st.cache_target,
-                                    st.light_selection)
+                                    st.light_sampling)
         self.tracer.frames = self.frames
-        self.lights = LightSampler.for_scene(scene, st.light_selection)
+        self.lights = st.light_sampling.sampler(scene)
         self.reference = self._load_reference(st.reference)
         self.out_dir: Path | None = None
         self.config_yaml = OmegaConf.to_yaml(cfg) if isinstance(cfg, DictConfig) else ""
@@ -203,7 +203,7 @@ class NRCRenderer:
             return self.lights
         rot = rotation_y(self.settings.degrees_per_frame * frame, self.device)
         return self.lights.with_lights(tuple(replace(lt, direction=rot @ lt.direction)
-                                             if isinstance(lt, DirectionalLight) else lt for lt in self.scene.lights))
+                                             if isinstance(lt, DirectionalLight) else lt for lt in self.lights.lights))
 
     # ------------------------------------------------------------------ one frame
     def frame_rng(self, frame: int) -> RandomSource:
@@ -220,7 +220,8 @@ class NRCRenderer:
         train_xy = training_positions(self.train_order, tr.width, tr.height, camera.width, camera.height, offset)
         unbiased = rng.rand(tr.n_paths, 1)[:, 0] < tr.unbiased_fraction
         ps = PathSet(camera, scene.integrator.spp, train_xy, unbiased)
-        trace = self.tracer.trace(ps, self.frame_lights(frame), rng)
+        lights = self.frame_lights(frame)
+        trace = self.tracer.trace(ps, lights, rng)
         t1 = time.perf_counter()
 
         # Training paths' terminal queries read the raw weights (training.query_weights=raw; a cache without
@@ -266,6 +267,7 @@ class NRCRenderer:
             "train_batches": len(batches), "train_records_valid": int(valid.sum()),
             "training_pixels_scattering": int(trace.scattered.sum()),
             **{f"time_{k}_s": v for k, v in trace.timers.items()}, **trace.counts, **infer_counts,
+            **{k: v for k, v in st.light_sampling.metrics(lights).items() if k in LIGHT_SCALARS},
         }
         return image, stats, losses
 
@@ -373,6 +375,9 @@ class NRCRenderer:
             "renderer": self.name, "frames": self.frames, "first_frame": start, "spp": self.scene.integrator.spp,
             "accumulate": st.accumulate, "transmittance": self.transmittance.name,
             "termination": st.termination.rule, "cache_target": st.cache_target, "time_frames_s": elapsed,
+            **st.light_sampling.metrics(self.lights),
+            "shadow_rays": int(sum(h.get("shadow_rays", []))),
+            "equiangular_segments": int(sum(h.get("equiangular_segments", []))),
             "training_image": [st.training.width, st.training.height], "training_auto": st.training.auto,
             "medium_pixels": self.medium_pixels,
             "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,

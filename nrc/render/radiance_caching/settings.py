@@ -12,7 +12,7 @@ from typing import Any
 from nrc.config import ConfigReader
 from nrc.errors import ConfigError
 from nrc.render.radiance_caching.termination import Termination
-from nrc.transport.light_sampling import SELECTIONS
+from nrc.transport.light_sampling import LightSamplingSettings
 
 ANIMATIONS = ("none", "orbit", "sun")
 CACHE_TARGETS = ("full", "indirect")
@@ -55,7 +55,7 @@ class NRCSettings:
     free_flight: str
     termination: Termination
     cache_target: str  # full | indirect (nrc.render.radiance_caching.paths)
-    light_selection: str  # uniform | power (nrc.transport.light_sampling)
+    light_sampling: LightSamplingSettings  # light_selection, ris.candidates, point_light_sampling
     training: TrainingSettings
     inference_batch: int
     accumulate: bool
@@ -83,7 +83,7 @@ class NRCSettings:
             free_flight=cfg.get_choice("free_flight", ["brick", "global"], "brick"),
             termination=Termination.from_config(cfg.block("termination")),
             cache_target=cfg.get_choice("cache_target", CACHE_TARGETS, "indirect"),
-            light_selection=cfg.get_choice("light_selection", list(SELECTIONS), "uniform"),
+            light_sampling=LightSamplingSettings.from_config(cfg, defaults=True),
             training=TrainingSettings(
                 **_training_size(tr),
                 records_per_path=tr.get_int("records_per_path", 4, lo=1),

@@ -6,7 +6,9 @@ environment (MIS-weighted against next-event estimation unless a camera ray), te
 cache query to the caller -- and refilled with new paths from the queue; once the queue is empty the state is
 compacted whenever fewer than 90 % of the slots are live. Every ``SCATTER_EVERY``-th call the slots waiting at a
 vertex run :meth:`Machine.vertex` (a subset: gathered, stepped, scattered back); next-event requests of an
-estimator without a per-step form are queued and traced in batches of ``shadow_batch`` rays.
+estimator without a per-step form are queued and traced in batches of ``shadow_batch`` rays. With
+``point_light_sampling=equiangular`` the segments the slots start (camera rays, scattering rays) are queued
+for the point lights' equi-angular estimate (:class:`EquiangularQueue`).
 
 Accumulator rows: row 0 of a slot is ``dest`` (a pixel, or a training path's discard row); rows ``j >= 1``
 (``nrc``) are training records, ``n_pixels + rec_base + j - 1``. With ``cache_target=indirect`` the direct
@@ -29,8 +31,10 @@ import torch
 from torch import Tensor
 
 from nrc.render.wavefront.machine import MIN_SLOTS, Machine, SceneInputs
-from nrc.render.wavefront.state import DONE, ESCAPED, QUERY, VERTEX, Layout, accumulator_row
+from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, accumulator_row
 from nrc.transport.light_sampling import LightSampler, power_heuristic
+from nrc.transport.rng import hash32
+from nrc.transport.rng import uniforms as counter_uniforms
 
 REFILL_EVERY = 4  # calls between refills while the camera queue lasts (finished slots idle ~1.5 steps)
 # calls between vertex passes: slots at a vertex wait ~0.5 step longer (+3.6 % slot-steps) for half the
@@ -41,24 +45,18 @@ SCATTER_EVERY = 2
 COMPACT_BELOW = 0.9
 
 
-@dataclass
-class ShadowQueue:
-    """Next-event requests for a transmittance estimator without a per-step form (``transmittance`` other than
-    ratio tracking): traced in batches, contributions added to the accumulator."""
+class BatchQueue:
+    """Work items ``(columns..., dest)`` collected as the slots produce them and traced ``batch`` rows at a time
+    (:meth:`trace` returns the RGB contributions ``(N, 3)``, added to the accumulator rows ``dest``)."""
 
-    estimator: Any
-    grid: Any
-    majorants: Any
-    batch: int
-    gen: torch.Generator
-    items: list[tuple[Tensor, ...]] = field(default_factory=list)
-    queued: int = 0
-    rays: int = 0
-    seconds: float = 0.0
+    def __init__(self, batch: int) -> None:
+        self.batch = batch
+        self.items: list[tuple[Tensor, ...]] = []
+        self.queued, self.done, self.seconds = 0, 0, 0.0
 
-    def push(self, x: Tensor, wi: Tensor, t1: Tensor, weight: Tensor, dest: Tensor, acc: Tensor) -> None:
-        self.items.append((x, wi, t1, weight, dest))
-        self.queued += len(x)
+    def push(self, *columns: Tensor, acc: Tensor) -> None:
+        self.items.append(columns)
+        self.queued += len(columns[0])
         if self.queued >= self.batch:
             self.flush(acc)
 
@@ -66,13 +64,49 @@ class ShadowQueue:
         if not self.items:
             return
         t0 = time.perf_counter()
-        x, wi, t1, weight, dest = (torch.cat(c) for c in zip(*self.items))
+        *cols, dest = (torch.cat(c) for c in zip(*self.items))
         self.items.clear()
         self.queued = 0
-        T = self.estimator(self.grid, self.majorants, x, wi, torch.zeros_like(t1), t1, self.gen)
-        acc.index_add_(0, dest, weight * T[:, None])
-        self.rays += len(x)
+        acc.index_add_(0, dest, self.trace(*cols))
+        self.done += len(dest)
         self.seconds += time.perf_counter() - t0
+
+    def trace(self, *columns: Tensor) -> Tensor:
+        raise NotImplementedError
+
+
+class ShadowQueue(BatchQueue):
+    """Next-event requests ``(x, wi, t1, weight, dest)`` for a transmittance estimator without a per-step form
+    (``transmittance`` other than ratio tracking): ``weight x T(x -> x + t1 wi)``."""
+
+    def __init__(self, estimator: Any, grid: Any, majorants: Any, batch: int, gen: torch.Generator) -> None:
+        super().__init__(batch)
+        self.estimator, self.grid, self.majorants, self.gen = estimator, grid, majorants, gen
+
+    def trace(self, x: Tensor, wi: Tensor, t1: Tensor, weight: Tensor) -> Tensor:
+        T = self.estimator(self.grid, self.majorants, x, wi, torch.zeros_like(t1), t1, self.gen)
+        return weight * T[:, None]
+
+
+class EquiangularQueue(BatchQueue):
+    """Flight segments ``(o, d, ta, tb, beta, key, cnt, dest)`` whose point-light direct light is estimated by
+    equi-angular sampling (``renderer.point_light_sampling=equiangular``, :mod:`nrc.transport.equiangular`):
+    queued as the segments start (camera rays as they are spawned, scattering rays after their vertex, up to the
+    one that leads to vertex ``max_scatter``), contributions added to the segment's accumulator row.
+
+    The distance and the light choice come from the path's counter-based draw ``(hash(key ^ SALT), cnt)`` (its
+    own stream: the step's draws use ``(key, cnt)``), so they depend on the path, not on the batching; the
+    transmittance estimator draws from ``sampler.gen`` like the shadow queue's."""
+
+    SALT = 0x5EA5EED
+
+    def __init__(self, sampler: Any, max_scatter: int, batch: int) -> None:
+        super().__init__(batch)
+        self.sampler, self.max_scatter = sampler, max_scatter
+
+    def trace(self, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, beta: Tensor, key: Tensor, cnt: Tensor) -> Tensor:
+        u = torch.stack(counter_uniforms(hash32(key ^ self.SALT), cnt, 2), 1)
+        return self.sampler.contribution(o, d, ta, tb, beta, u)
 
 
 @dataclass
@@ -102,10 +136,11 @@ class Wavefront:
     """
 
     def __init__(self, machine: Machine, inputs: SceneInputs, lights: LightSampler, slots: int,
-                 shadow: ShadowQueue | None, harvest: Harvest | None = None) -> None:
+                 shadow: ShadowQueue | None, harvest: Harvest | None = None,
+                 equiangular: EquiangularQueue | None = None) -> None:
         self.machine, self.inputs, self.lights, self.slots = machine, inputs, lights, slots
         self.layout: Layout = machine.step.layout
-        self.shadow, self.harvest = shadow, harvest
+        self.shadow, self.harvest, self.equiangular = shadow, harvest, equiangular
         self.counts = {"tracking_steps": 0, "shadow_steps": 0, "shadow_rays": 0, "scatter_events": 0,
                        "iterations": 0, "slot_steps": 0}
         self.timers = {"step": 0.0, "scatter": 0.0, "refill": 0.0}
@@ -134,6 +169,21 @@ class Wavefront:
     def _current_row(self, I: Tensor) -> Tensor | int:
         ly = self.layout
         return accumulator_row(I[ly.i("rec_base")], I[ly.i("n")], ly.rows - 1) if ly.nrc else 0
+
+    def _push_segments(self, F: Tensor, I: Tensor, acc: Tensor) -> None:
+        """Queue the equi-angular estimate of the segments the given slots start (flying, vertex count below
+        ``max_scatter``; a training path's camera ray, whose light would be discarded, excepted)."""
+        ly, eq = self.layout, self.equiangular
+        n = I[ly.i("n")]
+        go = (I[ly.i("flight")] == FLIGHT) & (n < eq.max_scatter) & (F[ly.f("tmax")] > F[ly.f("t")])
+        if ly.nrc:
+            go = go & ~((I[ly.i("rec_base")] >= 0) & (n == 0))
+        idx = go.nonzero().squeeze(1)
+        if not len(idx):
+            return
+        Fi, Ii = F[:, idx], I[:, idx]
+        eq.push(Fi[ly.f("o")].T.contiguous(), Fi[ly.f("d")].T.contiguous(), Fi[ly.f("t")], Fi[ly.f("tmax")],
+                Fi[ly.f("beta")].T, Ii[ly.i("key")], Ii[ly.i("cnt")], self._rows(Ii, self._current_row(Ii)), acc=acc)
 
     def _harvest(self, F: Tensor, I: Tensor, done: Tensor, acc: Tensor) -> None:
         ly = self.layout
@@ -192,8 +242,10 @@ class Wavefront:
             if len(qd):
                 Iq = Is[:, qd]
                 self.shadow.push(Fs[ly.f("o")][:, qd].T.contiguous(), Fs[ly.f("wi")][:, qd].T.contiguous(),
-                                 Fs[ly.f("tse")][qd], Fs[ly.f("csh")][:, qd].T, self._direct_rows(Iq), acc)
+                                 Fs[ly.f("tse")][qd], Fs[ly.f("csh")][:, qd].T, self._direct_rows(Iq), acc=acc)
                 Is[ly.i("shadow"), qd] = 0
+        if self.equiangular is not None:
+            self._push_segments(Fs, Is, acc)
         F.index_copy_(1, sc, Fs)
         I.index_copy_(1, sc, Is)
 
@@ -234,6 +286,8 @@ class Wavefront:
                             Fn, In = new_paths(torch.arange(next_id, next_id + k, device=dev))
                             F.index_copy_(1, slots, Fn)
                             I.index_copy_(1, slots, In)
+                            if self.equiangular is not None:
+                                self._push_segments(Fn, In, acc)
                             next_id += k
                     live = S - len(idx) + k
                     if live == 0:
@@ -260,5 +314,9 @@ class Wavefront:
             tm["scatter"] += time.perf_counter() - t_sc
         if self.shadow is not None:
             self.shadow.flush(acc)
-            c["shadow_rays"] += self.shadow.rays
+            c["shadow_rays"] += self.shadow.done
             tm["shadow"] = self.shadow.seconds
+        if self.equiangular is not None:
+            self.equiangular.flush(acc)
+            c["equiangular_segments"] = self.equiangular.done
+            tm["equiangular"] = self.equiangular.seconds

@@ -17,11 +17,12 @@ import torch
 from torch import Tensor
 
 from nrc.errors import ConfigError
-from nrc.render.wavefront.driver import ShadowQueue
+from nrc.render.wavefront.driver import EquiangularQueue, ShadowQueue
 from nrc.render.wavefront.machine import (Machine, SceneInputs, compiled_machine_ready, is_cached,
                                           machine_for)
 from nrc.render.wavefront.state import FLIGHT, Layout
 from nrc.render.wavefront.step import NRCRule, Transport, Uniforms
+from nrc.transport.equiangular import EquiangularSampler
 from nrc.transport.light_sampling import LightSampler, LightTable
 from nrc.transport.rng import uniforms as counter_uniforms
 from nrc.volume.grid import DensityGrid
@@ -74,6 +75,7 @@ class Core:
     bricks: Any = None
     scalars: tuple = ()  # (albedo, g, max_scatter, roulette threshold, rr_start, termination) for P
     last_startup_s: float = 0.0  # compile or cache-load seconds spent by the last choose()
+    point_lights: tuple = ()  # sampled equi-angularly along segments (left out of the step's light table)
     # auto with the step in the persistent cache: compile (a ~4 s load) from this fraction of compile_min_samples
     # on. Measured break-evens (2 cores): pt saves ~4.4 us a camera sample (170k -> 650k samples/s), so a 4.5 s
     # warm start pays from ~1 M samples = 1/4 of its 4 M; an nrc path saves ~15 us (frame 0.92 -> 0.46 s for
@@ -121,6 +123,15 @@ class Core:
             log.warning("renderer.backend=compiled: falling back to eager: %s", reason)
         return machine_for(self.eager_step, self.steps_per_call, False, self.device), "eager", reason
 
+    def equiangular_queue(self, batch: int, gen: torch.Generator) -> EquiangularQueue | None:
+        """The queue for the point lights' equi-angular estimate (``None``: no point light is sampled that way);
+        its estimator draws from ``gen``."""
+        if not self.point_lights:
+            return None
+        albedo, g, max_scatter = self.scalars[:3]
+        sampler = EquiangularSampler(self.point_lights, self.grid, self.majorants, albedo, g, self.transmittance, gen)
+        return EquiangularQueue(sampler, int(max_scatter), batch)
+
     def shadow_queue(self, machine: Machine, batch: int, gen: torch.Generator) -> ShadowQueue | None:
         """The queue for shadow rays that the machine's step does not trace itself (``None``: it does); its
         estimator draws from ``gen``."""
@@ -132,9 +143,11 @@ class Core:
 def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float, max_scatter: int,
                transmittance: Any, brick: Any, free_flight: str, backend: str, steps_per_call: int,
                compile_min_samples: int, rr_start: int | None = None, nrc: NRCRule | None = None,
-               termination: Any = None, uniforms: Uniforms = counter_uniforms, inline_shadows: bool = True) -> Core:
+               termination: Any = None, uniforms: Uniforms = counter_uniforms, inline_shadows: bool = True,
+               point_lights: tuple = ()) -> Core:
     """The core for a scene and a renderer's settings (``nrc``: the termination rule and ``V``;
-    ``inline_shadows=False``: shadow rays always queued for the estimator)."""
+    ``inline_shadows=False``: shadow rays always queued for the estimator; ``point_lights``: those sampled
+    equi-angularly, which ``lights`` must leave out)."""
     if backend not in BACKENDS:
         raise ConfigError(f"renderer.backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     for key, value, low in (("steps_per_call", steps_per_call, 1), ("compile_min_samples", compile_min_samples, 0)):
@@ -157,7 +170,8 @@ def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float,
     P = step.params(grid, bricks, table, albedo, g, max_scatter, thr, rr_start, termination)
     inputs = SceneInputs.build(P, grid.density, bricks.flat)
     return Core(step, eager_step, inputs, majorants, transmittance, grid.device, backend,
-                steps_per_call, compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr_start, termination))
+                steps_per_call, compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr_start, termination),
+                point_lights=tuple(point_lights))
 
 
 def camera_paths(layout: Layout, camera: Any, grid: DensityGrid, pix: Tensor, jitter: Tensor,

@@ -14,7 +14,8 @@ eagerly or ``torch.compile``'d (the same code; :mod:`nrc.render.wavefront.machin
     subset). ``nrc`` first applies the termination rule: a terminating path becomes a cache query
     (``QUERY``), a training path records the vertex; with ``cache_target=indirect`` a terminating path still
     requests next-event estimation, weighted 1 (light sampling alone). Then both renderers scatter:
-    throughput x albedo, a next-event request (one light chosen by the light table, uniformly or by power;
+    throughput x albedo, a next-event request (one light chosen by the light table, uniformly, by power or by
+    resampling candidates (RIS);
     its shadow ray starts in the slot, or is queued for a transmittance estimator that has no per-step form),
     optional Russian roulette and the phase-sampled continuation.
 
@@ -40,7 +41,7 @@ import torch
 from torch import Tensor
 
 from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState, accumulator_row
-from nrc.transport.light_sampling import LightSampler, LightTable, power_heuristic
+from nrc.transport.light_sampling import LightSampler, LightTable, power_heuristic, resample
 from nrc.transport.phase import hg_pdf, hg_sample_v3
 from nrc.transport.rng import uniforms as counter_uniforms
 from nrc.volume.box import box_exit
@@ -95,7 +96,8 @@ class Transport:
         self.lane_rr = 4
         self.lane_term = 4 + russian_roulette
         self.lane_light = self.lane_term + (nrc is not None)
-        self.lanes = self.lane_light + (lights.lanes if lights.supported else 4)
+        m = lights.candidates
+        self.lanes = self.lane_light + (lights.lanes if lights.supported else 4 * m + (m > 1))
         names = ["lo", "lo", "lo", "hi", "hi", "hi", "dims", "dims", "dims", "scale", "albedo", "g", "max_scatter",
                  "roulette", "rr_start", "min_vertices", "p_continue", "spread_c"]
         self.ix: dict[str, int] = {}
@@ -253,15 +255,23 @@ class Transport:
         sh = torch.zeros_like(s.shadow)
         wi, tse, csh = s.wi, s.tse, s.csh
         if lights.n_lights:
+            def phase_of(w: tuple) -> Tensor:
+                return hg_pdf(g, d[0] * w[0] + d[1] * w[1] + d[2] * w[2])
+
+            ul = u[self.lane_light:self.lanes]
             if self.sampler is None:
                 lv = list(p[self.ix["lights"]:self.n_params])
-                wi, l_dist, l_w, l_pdf, l_env = lights.sample(lv, x, u[self.lane_light:self.lanes])
+                wi, l_dist, l_w, l_pdf, l_env = lights.sample_ris(lv, x, ul, phase_of)
             else:  # lat-long maps: the eager sampler (this structure runs eagerly only)
-                ls = self.sampler.sample(torch.stack(x, 1), torch.stack(u[self.lane_light:self.lanes], 1))
-                wi, l_dist, l_w = tuple(ls.wi.unbind(1)), ls.distance, tuple(ls.weight.unbind(1))
-                l_pdf, l_env = ls.light_pdf, ls.is_env
+                def draw(uu: list) -> tuple:
+                    ls = self.sampler.sample(torch.stack(x, 1), torch.stack(uu, 1))
+                    return tuple(ls.wi.unbind(1)), ls.distance, tuple(ls.weight.unbind(1)), ls.light_pdf, ls.is_env
+
+                m = lights.candidates
+                cands = [draw(ul[4 * j:4 * j + 4]) for j in range(m)]
+                wi, l_dist, l_w, l_pdf, l_env = cands[0] if m == 1 else resample(cands, phase_of, ul[4 * m])[0]
             tse = torch.minimum(box_exit(lo, hi, x, wi), l_dist)
-            phase = hg_pdf(g, d[0] * wi[0] + d[1] * wi[1] + d[2] * wi[2])
+            phase = phase_of(wi)
             w = phase * torch.where(l_env & go, power_heuristic(l_pdf, phase), torch.ones_like(phase))
             csh = tuple(b * lw * w for b, lw in zip(beta_s, l_w))
             sh = torch.where(nee, torch.full_like(sh, 1 if self.inline_shadow else 2), sh)

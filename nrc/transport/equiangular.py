@@ -1,0 +1,156 @@
+"""Equi-angular distance sampling for point lights (Kulla and Fajardo 2012), ``renderer.point_light_sampling``.
+
+Along a flight segment ``x(t) = o + t d``, ``t in [ta, tb]``, with throughput ``beta``, the direct light a point
+light (position ``p``, intensity ``I``) scatters towards ``-d`` is the integral
+
+    D = int_ta^tb T(o, x(t)) sigma_s(x(t)) p(d, w_l) I / r(t)^2 T(x(t), p) dt,
+
+``r(t) = |p - x(t)|``, ``w_l`` the unit direction from ``x(t)`` to ``p``. Equi-angular sampling draws ``t`` with
+pdf ``h / (A (h^2 + (t - Delta)^2))`` (``Delta`` the ray parameter closest to ``p``, ``h`` the distance of ``p``
+from the ray, ``A`` the angle the sampled part of the segment subtends at ``p``), which cancels the ``1/r^2``.
+The pdf is restricted to the parts of the segment that lie in bricks with a positive majorant
+(:meth:`nrc.volume.majorant.MajorantGrid.traverse`, the one brick iterator), where ``sigma_s`` is zero
+outside; ``A`` is the sum of those parts' angles. Both transmittances are estimated by the configured
+transmittance estimator (independent, unbiased estimates: their product is unbiased); ``sigma_s`` is the exact
+density. One point light per segment is chosen, with probability proportional to its power into the medium's
+bounding sphere (:func:`nrc.transport.light_sampling.light_powers`).
+
+Why equi-angular alone, with no MIS against the next-event estimate at delta-tracked vertices (option (a) of
+issue 16): the delta-tracking pdf of a vertex, ``sigma_t T``, has no closed form in a heterogeneous medium, and
+an *estimated* transmittance inside a MIS weight makes the weights not sum to one, i.e. a biased combination.
+So a point light's direct light is estimated only here, on every segment of a path (camera ray and scattering
+rays up to the one that leads to vertex ``max_scatter``), and the renderers leave the point lights out of the
+next-event estimate at the vertices (:meth:`LightSampler.for_scene`, ``exclude_points``). The two estimators
+split the integrand, not weight it: the vertex estimates everything but the point lights' direct light, this
+module estimates that. Every vertex the path reaches sits on a segment, so nothing is counted twice or missed.
+
+Memory: per batch of ``N`` segments, ``K`` ``(N,)`` floats for the ``K`` brick crossings of the longest
+segment (``K <= bx + by + bz``), and the estimator's own state for ``2N`` rays.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from nrc.transport.light_sampling import light_powers
+from nrc.transport.lights import PointLight
+from nrc.transport.phase import hg_pdf
+from nrc.volume.majorant import MajorantGrid
+
+H_MIN = 1e-4  # the light's distance from the ray is clamped to H_MIN x brick size (sampling and pdf alike)
+
+
+@dataclass
+class EquiangularSegments:
+    """The sampled part of each segment: ``(N,)`` tensors ``delta``, ``h``, the angle ``A`` of the brick parts
+    with a positive majorant, and per brick crossing ``k`` the lists ``t0[k]``, ``t1[k]``, ``angle[k]``."""
+
+    delta: Tensor
+    h: Tensor
+    total: Tensor
+    t0: list[Tensor]
+    t1: list[Tensor]
+    angle: list[Tensor]
+
+    def pdf(self, t: Tensor) -> Tensor:
+        """Pdf ``(N,)`` of the distance ``t`` (zero outside the sampled parts)."""
+        inside = torch.zeros_like(t, dtype=torch.bool)
+        for a, b, ang in zip(self.t0, self.t1, self.angle):
+            inside = inside | ((ang > 0) & (t >= a) & (t <= b))
+        dens = self.h / (self.total.clamp(min=1e-30) * (self.h * self.h + (t - self.delta) ** 2))
+        return torch.where(inside & (self.total > 0), dens, torch.zeros_like(t))
+
+
+def segments(majorants: MajorantGrid, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, p: Tensor) -> EquiangularSegments:
+    """The equi-angular measure of segments ``o + t d``, ``t in [ta, tb]`` (``(N, 3)``, ``(N,)``), towards the
+    light positions ``p`` ``(N, 3)``."""
+    rel = p - o
+    delta = (rel * d).sum(-1)
+    h = torch.linalg.vector_norm(rel - delta[:, None] * d, dim=-1).clamp(min=H_MIN * majorants.brick_size)
+    trav = majorants.traverse(o, d, ta, tb)
+    t0s, t1s, angles = [], [], []
+    total = torch.zeros_like(ta)
+    while bool(trav.active.any()):
+        a, b = trav.t, trav.t_exit()
+        full = trav.active & (trav.majorant() > 0)
+        ang = torch.where(full, torch.atan((b - delta) / h) - torch.atan((a - delta) / h), torch.zeros_like(a))
+        ang = ang.clamp(min=0.0)
+        t0s.append(a.clone())
+        t1s.append(b.clone())
+        angles.append(ang)
+        total = total + ang
+        trav.advance(trav.active)
+    return EquiangularSegments(delta, h, total, t0s, t1s, angles)
+
+
+def sample_distance(seg: EquiangularSegments, u: Tensor) -> tuple[Tensor, Tensor]:
+    """``(t, pdf)`` ``(N,)`` from uniforms ``u`` ``(N,)``: the brick part by its angle, then ``t`` inside it by
+    inverting the angle (``pdf = 0`` and ``t = delta`` where nothing is sampled)."""
+    target = u * seg.total
+    run = torch.zeros_like(u)
+    t = seg.delta.clone()
+    picked = torch.zeros_like(u, dtype=torch.bool)
+    for a, b, ang in zip(seg.t0, seg.t1, seg.angle):
+        take = ~picked & (ang > 0) & ((target < run + ang) | (ang > 0) & (run + ang >= seg.total))
+        theta = torch.atan((a - seg.delta) / seg.h) + (target - run).clamp(min=0.0)
+        ti = (seg.delta + seg.h * torch.tan(theta.clamp(-0.5 * math.pi + 1e-7, 0.5 * math.pi - 1e-7)))
+        t = torch.where(take, torch.minimum(torch.maximum(ti, a), b), t)
+        picked = picked | take
+        run = run + ang
+    pdf = seg.h / (seg.total.clamp(min=1e-30) * (seg.h * seg.h + (t - seg.delta) ** 2))
+    return t, torch.where(picked & (seg.total > 0), pdf, torch.zeros_like(pdf))
+
+
+class EquiangularSampler:
+    """Point lights' direct light along flight segments (module docstring).
+
+    Args:
+        points: the scene's point lights (at least one).
+        grid: the density grid; majorants: its brick majorants (the sampled parts, and the estimator's).
+        albedo, g: the medium's albedo and HG asymmetry.
+        transmittance: the configured estimator (``make_transmittance``), drawing from ``gen``.
+    """
+
+    def __init__(self, points: tuple[PointLight, ...], grid: Any, majorants: MajorantGrid, albedo: float, g: float,
+                 transmittance: Any, gen: torch.Generator) -> None:
+        if not points:
+            raise ValueError("equi-angular sampling needs at least one point light")
+        self.grid, self.majorants, self.albedo, self.g = grid, majorants, float(albedo), float(g)
+        self.transmittance, self.gen = transmittance, gen
+        dev = grid.device
+        self.positions = torch.stack([lt.position for lt in points]).to(dev)
+        self.intensities = torch.stack([lt.intensity for lt in points]).to(dev)
+        box = grid.box
+        powers = light_powers(points, (box.lo + box.hi) / 2, float(torch.linalg.vector_norm(box.hi - box.lo)) / 2)
+        total = sum(powers)
+        pmf = [pw / total for pw in powers] if total > 0 else [1.0 / len(points)] * len(points)
+        self.pmf = torch.tensor(pmf, device=dev)
+        self.cdf = torch.cumsum(self.pmf.double(), 0).float()
+        self.cdf[-1] = 1.0
+
+    def contribution(self, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, beta: Tensor, u: Tensor) -> Tensor:
+        """RGB ``(N, 3)``: ``beta`` x the estimate of one chosen point light's direct light scattered along the
+        segments (``o``, ``d`` ``(N, 3)`` unit, ``[ta, tb]`` inside the box, ``u`` ``(N, 2)`` uniforms)."""
+        k = torch.searchsorted(self.cdf, u[:, 0].contiguous(), right=True).clamp(max=len(self.cdf) - 1)
+        p, inten, sel = self.positions[k], self.intensities[k], self.pmf[k]
+        seg = segments(self.majorants, o, d, ta, tb, p)
+        t, pdf = sample_distance(seg, u[:, 1])
+        ok = pdf > 0
+        x = o + t[:, None] * d
+        to = p - x
+        r2 = (to * to).sum(-1).clamp(min=1e-12)
+        r = torch.sqrt(r2)
+        wl = to / r[:, None]
+        sigma_s = self.albedo * self.grid.sigma_t(x)
+        t_out = torch.minimum(self.grid.box.intersect(x, wl)[1], r)
+        # the two transmittances in one estimator call: o -> x along d, x -> the light
+        T = self.transmittance(self.grid, self.majorants, torch.cat([o, x]), torch.cat([d, wl]),
+                               torch.cat([ta, torch.zeros_like(t)]), torch.cat([t, t_out]), self.gen)
+        n = len(t)
+        w = sigma_s * hg_pdf(self.g, (d * wl).sum(-1)) * T[:n] * T[n:] / (pdf.clamp(min=1e-30) * r2 * sel)
+        return torch.where(ok[:, None], beta * inten * w[:, None], torch.zeros_like(beta))
