@@ -127,12 +127,9 @@ def hollow_lantern(tmp_path: Path, radius: float = 12.0) -> list[str]:
     variance is infinite and image means converge too slowly for a test)."""
     from nrc.config import compose as compose_cfg
     from nrc.scene import load_scene
+    from nrc.volume.procedural import clear_pocket
 
     cfg = compose_cfg(["scene=lantern", "scene.volume.procedural.resolution=24"])
-    grid = load_scene(cfg.scene).grid
-    idx = torch.stack(torch.meshgrid(*[torch.arange(k) for k in grid.shape], indexing="ij"), -1).float()
-    centre = grid.box.lo + (idx + 0.5) * grid.voxel_size
-    far = (centre - torch.tensor(LANTERN_POSITION)).norm(dim=-1) > radius
     path = tmp_path / "hollow.npz"
-    np.savez(path, density=(grid.density * far).numpy())
+    np.savez(path, density=clear_pocket(load_scene(cfg.scene).grid, LANTERN_POSITION, radius).numpy())
     return ["scene=lantern", "scene.volume.source=npz", f"scene.volume.path={path}"]

@@ -355,6 +355,10 @@ SPEED_RUNS = [("side-lit Disney cloud (sun + sky, g 0.5), 480 x 270", "oidn_480x
               ("point lights by next-event estimation against equi-angular sampling: the lantern preset (a point light "
                "inside the cumulus), 80 x 45, eager", "light_sampling_80x45_lantern"),
               ("the lantern in a thinned cloud (density 0.1), 80 x 45, eager", "light_sampling_80x45_lantern_thin"),
+              ("light selection uniform, power and RIS (4 candidates): the procedural cumulus under the thesis sun and "
+               "a sky (scene=sun_sky), 160 x 90, eager", "light_sampling_160x90_sun_sky"),
+              ("light selection uniform, power and RIS (4 candidates): the default scene (back-lit sun + sky), "
+               "160 x 90, eager", "light_sampling_160x90_cumulus"),
               ("front-lit preset (sun_front), raw path tracer, 480 x 270 (older code)", "speed_480x270_v2"),
               ("front-lit preset (sun_front), raw path tracer, 160 x 90 (older code)", "speed_160x90_v2"),
               ("front-lit preset, 160 x 90, the default sweep (encodings, extra inputs, transmittance estimators; "

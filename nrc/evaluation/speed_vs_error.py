@@ -87,6 +87,7 @@ PRESETS: dict[str, list[str]] = {
     "cumulus": ["scene=sun", "scene.camera.width=160", "scene.camera.height=90"],  # the default scene
     # the light-sampling scenes of docs/path_tracer.md (the procedural cumulus)
     "many_lights": ["scene=many_lights", "scene.camera.width=160", "scene.camera.height=90"],
+    "sun_sky": ["scene=sun_sky", "scene.camera.width=160", "scene.camera.height=90"],
     "lantern": ["scene=lantern", "scene.camera.width=80", "scene.camera.height=45"],
     "none": [],
 }

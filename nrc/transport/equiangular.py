@@ -8,9 +8,16 @@ light (position ``p``, intensity ``I``) scatters towards ``-d`` is the integral
 ``r(t) = |p - x(t)|``, ``w_l`` the unit direction from ``x(t)`` to ``p``. Equi-angular sampling draws ``t`` with
 pdf ``h / (A (h^2 + (t - Delta)^2))`` (``Delta`` the ray parameter closest to ``p``, ``h`` the distance of ``p``
 from the ray, ``A`` the angle the sampled part of the segment subtends at ``p``), which cancels the ``1/r^2``.
-The pdf is restricted to the parts of the segment that lie in bricks with a positive majorant
-(:meth:`nrc.volume.majorant.MajorantGrid.traverse`, the one brick iterator), where ``sigma_s`` is zero
-outside; ``A`` is the sum of those parts' angles. Both transmittances are estimated by the configured
+Two factors of the integrand are added to it here. The phase value: with ``theta = atan((t - Delta) / h)`` the
+cosine towards the light is ``-sin theta``, so sampling ``theta`` in proportion to ``p_HG(-sin theta)`` (a table,
+:class:`PhaseAngleTable`) cancels the phase function too -- for ``g = 0.8`` it varies 729-fold along a ray, and
+plain equi-angular sampling was measured *less* efficient than next-event estimation there. And the density at
+brick resolution: the pdf follows the bricks the segment crosses
+(:meth:`nrc.volume.majorant.MajorantGrid.traverse`, the one brick iterator), in brick ``k``
+``m_k p(theta) (dtheta/dt) / W`` with ``m_k`` the brick's majorant and ``W`` the sum over the bricks of ``m_k``
+times the phase integral over their angles; empty bricks, where ``sigma_s`` is zero, are never sampled. What
+is left in the estimate is ``beta (sigma_s(x) / m_k) I T(o, x) T(x, p) W / h``: bounded but for ``1/h``, the
+glow of a ray passing next to the light. Both transmittances are estimated by the configured
 transmittance estimator (independent, unbiased estimates: their product is unbiased); ``sigma_s`` is the exact
 density. One point light per segment is chosen, with probability proportional to its power into the medium's
 bounding sphere (:func:`nrc.transport.light_sampling.light_powers`).
@@ -45,65 +52,120 @@ from nrc.volume.majorant import MajorantGrid
 H_MIN = 1e-4  # the light's distance from the ray is clamped to H_MIN x brick size (sampling and pdf alike)
 
 
+class PhaseAngleTable:
+    """The HG phase value along a ray as a function of the equi-angular angle, tabulated for sampling.
+
+    With ``theta = atan((t - Delta) / h)`` the cosine between the ray's direction ``d`` and the direction to the
+    light is ``-sin(theta)``, so the integrand's phase factor is ``p_HG(g, -sin theta)``. The table holds it
+    piecewise constant on ``n`` cells of ``[-pi/2, pi/2]`` (the value at each cell's midpoint) and its running
+    integral ``C`` (piecewise linear); sampling inverts ``C`` exactly and :meth:`density` is the derivative of
+    that ``C``, so the pdf is the one the samples follow (the table's accuracy affects variance, never bias).
+    For ``g = 0`` it is constant: plain equi-angular sampling.
+
+    Args:
+        g: the HG asymmetry in ``(-1, 1)``; n: cells (memory ``2n`` floats).
+    """
+
+    def __init__(self, g: float, device: torch.device, n: int = 4096) -> None:
+        self.n, self.step = n, math.pi / n
+        mid = -0.5 * math.pi + (torch.arange(n, dtype=torch.float64) + 0.5) * self.step
+        v = hg_pdf(float(g), -torch.sin(mid))
+        self.value = v.float().to(device)
+        self.cum = torch.cat([torch.zeros(1, dtype=torch.float64), torch.cumsum(v * self.step, 0)]).float().to(device)
+
+    def _cell(self, theta: Tensor) -> Tensor:
+        return ((theta + 0.5 * math.pi) / self.step).floor().long().clamp(0, self.n - 1)
+
+    def cdf(self, theta: Tensor) -> Tensor:
+        """``C(theta)``: the integral of the tabulated phase from ``-pi/2`` (``(N,)``)."""
+        i = self._cell(theta)
+        lo = -0.5 * math.pi + i.to(theta.dtype) * self.step
+        return self.cum[i] + self.value[i] * (theta - lo)
+
+    def inverse(self, c: Tensor) -> Tensor:
+        """The angle ``theta`` with ``C(theta) = c``."""
+        i = (torch.searchsorted(self.cum, c.contiguous(), right=True) - 1).clamp(0, self.n - 1)
+        lo = -0.5 * math.pi + i.to(c.dtype) * self.step
+        return lo + ((c - self.cum[i]) / self.value[i]).clamp(0.0, self.step)
+
+    def density(self, theta: Tensor) -> Tensor:
+        """``dC / dtheta`` at ``theta``."""
+        return self.value[self._cell(theta)]
+
+
 @dataclass
 class EquiangularSegments:
-    """The sampled part of each segment: ``(N,)`` tensors ``delta``, ``h``, the angle ``A`` of the brick parts
-    with a positive majorant, and per brick crossing ``k`` the lists ``t0[k]``, ``t1[k]``, ``angle[k]``."""
+    """The sampled parts of each segment: ``(N,)`` tensors ``delta``, ``h``, the total weight ``W``, and per
+    brick crossing ``k`` the lists ``t0[k]``, ``t1[k]``, ``weight[k]`` (the brick's majorant ``m[k]`` x the
+    tabulated phase integral over the angles of its part; zero for empty bricks)."""
 
+    table: PhaseAngleTable
     delta: Tensor
     h: Tensor
     total: Tensor
     t0: list[Tensor]
     t1: list[Tensor]
-    angle: list[Tensor]
+    weight: list[Tensor]
+    majorant: list[Tensor]
+
+    def density(self, m: Tensor, t: Tensor) -> Tensor:
+        """Pdf at ``t`` inside a part of majorant ``m``: ``m p(theta) (dtheta / dt) / W``."""
+        x = t - self.delta
+        theta = torch.atan(x / self.h)
+        dens = m * self.table.density(theta) * self.h / (self.total.clamp(min=1e-30) * (self.h * self.h + x * x))
+        return torch.where(self.total > 0, dens, torch.zeros_like(t))
 
     def pdf(self, t: Tensor) -> Tensor:
         """Pdf ``(N,)`` of the distance ``t`` (zero outside the sampled parts)."""
-        inside = torch.zeros_like(t, dtype=torch.bool)
-        for a, b, ang in zip(self.t0, self.t1, self.angle):
-            inside = inside | ((ang > 0) & (t >= a) & (t <= b))
-        dens = self.h / (self.total.clamp(min=1e-30) * (self.h * self.h + (t - self.delta) ** 2))
-        return torch.where(inside & (self.total > 0), dens, torch.zeros_like(t))
+        m = torch.zeros_like(t)
+        for a, b, w, mk in zip(self.t0, self.t1, self.weight, self.majorant):
+            m = torch.where((w > 0) & (t >= a) & (t <= b), mk, m)
+        return self.density(m, t)
 
 
-def segments(majorants: MajorantGrid, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, p: Tensor) -> EquiangularSegments:
-    """The equi-angular measure of segments ``o + t d``, ``t in [ta, tb]`` (``(N, 3)``, ``(N,)``), towards the
-    light positions ``p`` ``(N, 3)``."""
+def segments(majorants: MajorantGrid, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, p: Tensor,
+             table: PhaseAngleTable) -> EquiangularSegments:
+    """The sampling measure of segments ``o + t d``, ``t in [ta, tb]`` (``(N, 3)``, ``(N,)``), towards the light
+    positions ``p`` ``(N, 3)``."""
     rel = p - o
     delta = (rel * d).sum(-1)
     h = torch.linalg.vector_norm(rel - delta[:, None] * d, dim=-1).clamp(min=H_MIN * majorants.brick_size)
     trav = majorants.traverse(o, d, ta, tb)
-    t0s, t1s, angles = [], [], []
+    t0s, t1s, weights, majs = [], [], [], []
     total = torch.zeros_like(ta)
     while bool(trav.active.any()):
         a, b = trav.t, trav.t_exit()
-        full = trav.active & (trav.majorant() > 0)
-        ang = torch.where(full, torch.atan((b - delta) / h) - torch.atan((a - delta) / h), torch.zeros_like(a))
-        ang = ang.clamp(min=0.0)
+        m = torch.where(trav.active, trav.majorant(), torch.zeros_like(a))
+        c = table.cdf(torch.atan((b - delta) / h)) - table.cdf(torch.atan((a - delta) / h))
+        w = torch.where(m > 0, c.clamp(min=0.0) * m, torch.zeros_like(a))
         t0s.append(a.clone())
         t1s.append(b.clone())
-        angles.append(ang)
-        total = total + ang
+        weights.append(w)
+        majs.append(m)
+        total = total + w
         trav.advance(trav.active)
-    return EquiangularSegments(delta, h, total, t0s, t1s, angles)
+    return EquiangularSegments(table, delta, h, total, t0s, t1s, weights, majs)
 
 
 def sample_distance(seg: EquiangularSegments, u: Tensor) -> tuple[Tensor, Tensor]:
-    """``(t, pdf)`` ``(N,)`` from uniforms ``u`` ``(N,)``: the brick part by its angle, then ``t`` inside it by
-    inverting the angle (``pdf = 0`` and ``t = delta`` where nothing is sampled)."""
+    """``(t, pdf)`` ``(N,)`` from uniforms ``u`` ``(N,)``: the brick part by its weight, then ``t`` inside it by
+    inverting the tabulated phase integral over its angles (``pdf = 0`` and ``t = delta`` where nothing is
+    sampled)."""
     target = u * seg.total
     run = torch.zeros_like(u)
     t = seg.delta.clone()
+    m = torch.zeros_like(u)
     picked = torch.zeros_like(u, dtype=torch.bool)
-    for a, b, ang in zip(seg.t0, seg.t1, seg.angle):
-        take = ~picked & (ang > 0) & ((target < run + ang) | (ang > 0) & (run + ang >= seg.total))
-        theta = torch.atan((a - seg.delta) / seg.h) + (target - run).clamp(min=0.0)
-        ti = (seg.delta + seg.h * torch.tan(theta.clamp(-0.5 * math.pi + 1e-7, 0.5 * math.pi - 1e-7)))
+    for a, b, w, mk in zip(seg.t0, seg.t1, seg.weight, seg.majorant):
+        take = ~picked & (w > 0) & ((target < run + w) | (run + w >= seg.total))
+        c0 = seg.table.cdf(torch.atan((a - seg.delta) / seg.h))
+        theta = seg.table.inverse(c0 + ((target - run) / mk.clamp(min=1e-30)).clamp(min=0.0))
+        ti = seg.delta + seg.h * torch.tan(theta.clamp(-0.5 * math.pi + 1e-7, 0.5 * math.pi - 1e-7))
         t = torch.where(take, torch.minimum(torch.maximum(ti, a), b), t)
+        m = torch.where(take, mk, m)
         picked = picked | take
-        run = run + ang
-    pdf = seg.h / (seg.total.clamp(min=1e-30) * (seg.h * seg.h + (t - seg.delta) ** 2))
-    return t, torch.where(picked & (seg.total > 0), pdf, torch.zeros_like(pdf))
+        run = run + w
+    return t, torch.where(picked, seg.density(m, t), torch.zeros_like(t))
 
 
 class EquiangularSampler:
@@ -132,13 +194,14 @@ class EquiangularSampler:
         self.pmf = torch.tensor(pmf, device=dev)
         self.cdf = torch.cumsum(self.pmf.double(), 0).float()
         self.cdf[-1] = 1.0
+        self.table = PhaseAngleTable(self.g, dev)
 
     def contribution(self, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, beta: Tensor, u: Tensor) -> Tensor:
         """RGB ``(N, 3)``: ``beta`` x the estimate of one chosen point light's direct light scattered along the
         segments (``o``, ``d`` ``(N, 3)`` unit, ``[ta, tb]`` inside the box, ``u`` ``(N, 2)`` uniforms)."""
         k = torch.searchsorted(self.cdf, u[:, 0].contiguous(), right=True).clamp(max=len(self.cdf) - 1)
         p, inten, sel = self.positions[k], self.intensities[k], self.pmf[k]
-        seg = segments(self.majorants, o, d, ta, tb, p)
+        seg = segments(self.majorants, o, d, ta, tb, p, self.table)
         t, pdf = sample_distance(seg, u[:, 1])
         ok = pdf > 0
         x = o + t[:, None] * d

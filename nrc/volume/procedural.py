@@ -297,3 +297,14 @@ def procedural_cloud(resolution: tuple[int, int, int] | list[int] | int = 128, s
     if kind != "blobs":
         density = crop_to_density(density)
     return density.contiguous()
+
+
+def clear_pocket(grid, centre, radius: float) -> Tensor:
+    """The grid's density with the voxels whose centres lie within ``radius`` (world units) of ``centre`` set to
+    zero: a pocket of clear air (a lantern's glass housing) around a light inside the medium. Trilinear lookups
+    are zero within about ``radius - sqrt(3) x voxel size`` of the centre. Returns a new ``(nx, ny, nz)`` tensor
+    (write it to ``.npz`` for ``scene.volume.source=npz`` with the grid's ``diagonal`` and ``center``)."""
+    idx = torch.stack(torch.meshgrid(*[torch.arange(k, device=grid.device) for k in grid.shape], indexing="ij"), -1)
+    centres = grid.box.lo + (idx.float() + 0.5) * grid.voxel_size
+    c = torch.as_tensor(centre, dtype=torch.float32, device=grid.device)
+    return grid.density * ((centres - c).norm(dim=-1) > radius)
