@@ -136,3 +136,36 @@ def test_ris_under_a_latlong_map_is_unbiased():
     want = float((emap.radiance(dirs)[:, 0] * hg_pdf(G, dirs @ d) * dw).sum()) + float(hg_pdf(G, torch.dot(d, torch.tensor([0.0, 1.0, 0.0]))))
     err = float(est.std()) / math.sqrt(n)
     assert abs(float(est.mean()) - want) < 4.5 * err + 2e-3 * want, (float(est.mean()), want, err)
+
+
+@pytest.mark.parametrize("override, message", [
+    ("renderer.ris.candidates=0", "renderer.ris.candidates must be >= 1"),
+    ("renderer.point_light_sampling=kulla", "renderer.point_light_sampling"),
+    ("renderer.light_selection=best", "renderer.light_selection"),
+    ("+renderer.ris.count=3", "renderer.ris: unknown key(s) count"),
+])
+def test_bad_light_sampling_settings_name_the_key(override, message):
+    from conftest import compose
+    from nrc.errors import ConfigError
+    from nrc.render.pt import PathTracerSettings
+
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        PathTracerSettings.from_config(compose(["renderer=pt", override]).renderer)
+
+
+def test_light_sampling_metrics_of_a_scene():
+    """Under equi-angular sampling the point lights leave the next-event choice; the entropy is log2 of the
+    uniform choice's light count."""
+    from conftest import compose
+    from nrc.scene import load_scene
+    from nrc.transport.light_sampling import LightSamplingSettings
+
+    cfg = compose(["scene=many_lights", "scene.volume.procedural.resolution=16"])
+    scene = load_scene(cfg.scene)
+    both = LightSamplingSettings("uniform", 4, "none")
+    m = both.metrics(both.sampler(scene))
+    assert m["nee_lights"] == 17 and m["light_selection_entropy_bits"] == pytest.approx(math.log2(17))
+    eq = LightSamplingSettings("ris", 4, "equiangular")
+    m = eq.metrics(eq.sampler(scene))
+    assert m["nee_lights"] == 1 and m["ris_candidates"] == 4 and m["light_selection_entropy_bits"] == 0.0
+    assert len(eq.equiangular_points(scene)) == 16

@@ -359,6 +359,8 @@ SPEED_RUNS = [("side-lit Disney cloud (sun + sky, g 0.5), 480 x 270", "oidn_480x
                "a sky (scene=sun_sky), 160 x 90, eager", "light_sampling_160x90_sun_sky"),
               ("light selection uniform, power and RIS (4 candidates): the default scene (back-lit sun + sky), "
                "160 x 90, eager", "light_sampling_160x90_cumulus"),
+              ("the path tracer and NRC with uniform and RIS light selection, raw and denoised: the many-lights preset, "
+               "160 x 90, eager", "light_sampling_160x90_many_lights_nrc"),
               ("front-lit preset (sun_front), raw path tracer, 480 x 270 (older code)", "speed_480x270_v2"),
               ("front-lit preset (sun_front), raw path tracer, 160 x 90 (older code)", "speed_160x90_v2"),
               ("front-lit preset, 160 x 90, the default sweep (encodings, extra inputs, transmittance estimators; "
