@@ -169,3 +169,27 @@ def test_light_sampling_metrics_of_a_scene():
     m = eq.metrics(eq.sampler(scene))
     assert m["nee_lights"] == 1 and m["ris_candidates"] == 4 and m["light_selection_entropy_bits"] == 0.0
     assert len(eq.equiangular_points(scene)) == 16
+
+
+@pytest.mark.parametrize("selection", ["uniform", "power"])
+def test_light_table_looks_up_many_lights_as_the_sampler_chooses_them(selection):
+    """Blocks of three or more lights of a type are looked up by index in the per-slot table: the same choice,
+    directions, distances and weights as the eager sampler from the same uniforms (four suns, five points, sky)."""
+    gen = torch.Generator().manual_seed(4)
+    suns = tuple(DirectionalLight(torch.nn.functional.normalize(torch.randn(3, generator=gen), dim=0),
+                                  torch.rand(3, generator=gen) * 3) for _ in range(4))
+    pts = tuple(PointLight(torch.randn(3, generator=gen) * 4, torch.rand(3, generator=gen) * 50) for _ in range(5))
+    lights = (*suns, *pts, EnvironmentLight(torch.tensor([0.1, 0.2, 0.3]), None, 1.0))
+    ls = LightSampler(lights, torch.device("cpu"), selection, (LO, HI))
+    table = LightTable(ls)
+    n = 5000
+    x = torch.randn(n, 3, generator=gen) * 0.5
+    u = torch.rand(n, 4, generator=gen)
+    ref = ls.sample(x, u)
+    wi, dist, weight, pdf, env = table.sample(table.values, tuple(x.unbind(1)), [u[:, 0], u[:, 1], u[:, 2]])
+    assert bool((env == ref.is_env).all())
+    delta = ~env
+    torch.testing.assert_close(torch.stack(wi, 1)[delta], ref.wi[delta])
+    torch.testing.assert_close(dist[delta], ref.distance[delta])
+    torch.testing.assert_close(torch.stack(weight, 1)[delta], ref.weight[delta])
+    torch.testing.assert_close(pdf[env], ref.light_pdf[env])

@@ -422,6 +422,16 @@ def power_heuristic(a: Tensor, b: Tensor | float) -> Tensor:
     return torch.where(den > 0, a2 / den.clamp(min=1e-30), torch.ones_like(den))
 
 
+GATHER_MIN = 3  # blocks of this many lights of a type (and power choices among as many) are looked up by index
+
+
+def _block(values: list, pos: int, count: int, width: int, like: Tensor) -> Tensor:
+    """``values[pos : pos + count x width]`` (numbers or 0-d tensors) as a ``(count, width)`` tensor."""
+    vals = values[pos:pos + count * width]
+    t = torch.stack(vals) if isinstance(vals[0], Tensor) else torch.tensor(vals, dtype=like.dtype, device=like.device)
+    return t.reshape(count, width)
+
+
 def _pick(m: Tensor | None, new: tuple, old: tuple) -> tuple:
     """Component-wise ``where(m, new, old)``; ``m=None`` takes ``new`` (a light chosen with probability 1)."""
     if m is None:
@@ -440,7 +450,8 @@ class LightTable:
     direction, ``P(select sky) / (4 pi)``; with ``power`` or ``ris`` selection (and several lights) then every
     light's selection probability, in light order (the uniform choice needs none). ``ris`` draws
     :attr:`candidates` samples of that source distribution and :func:`resample` keeps one
-    (:meth:`sample_ris`).
+    (:meth:`sample_ris`). A type with :data:`GATHER_MIN` or more lights (and a power choice among as many) is
+    looked up by the chosen index in a ``(count, 6)`` block instead of a masked selection per light.
 
     Args:
         lights: the sampler whose lights are read.
@@ -502,7 +513,13 @@ class LightTable:
         lane = 0
         k = None
         power = self.selection == "power"
-        if power:  # the selection probabilities are the last n values; k = the number of CDF steps below u
+        zero = torch.zeros_like(x[0])
+        if power and n >= GATHER_MIN:  # many lights: one comparison against the CDF and a lookup, no chain
+            pmf = _block(values, len(values) - n, n, 1, zero)[:, 0]
+            k = (u[0][:, None] >= torch.cumsum(pmf, 0)[None, :-1]).long().sum(-1)
+            inv = 1.0 / pmf[k].clamp(min=1e-30)
+            lane = 1
+        elif power:  # the selection probabilities are the last n values; k = the number of CDF steps below u
             pmf = values[len(values) - n:]
             acc, k = pmf[0], torch.zeros_like(x[0], dtype=torch.long)
             for j in range(1, n):
@@ -516,17 +533,34 @@ class LightTable:
         elif n > 1:
             k = (u[0] * n).long().clamp(max=n - 1)
             lane = 1
-        zero = torch.zeros_like(x[0])
         wi: tuple = (zero, zero + 1.0, zero)
         dist = torch.full_like(zero, math.inf)
         weight: tuple = (zero, zero, zero)
         is_env = torch.zeros_like(zero, dtype=torch.bool)
         idx, pos = 0, 0
-        for _ in range(self.n_directional):
+        if self.n_directional >= GATHER_MIN:  # a lookup of the chosen light's row
+            rows = _block(values, pos, self.n_directional, 6, zero)
+            m = (k >= idx) & (k < idx + self.n_directional)
+            row = rows[(k - idx).clamp(0, self.n_directional - 1)]
+            wi = _pick(m, tuple(row[:, j] for j in range(3)), wi)
+            weight = _pick(m, tuple(row[:, j] for j in range(3, 6)), weight)
+            idx, pos = idx + self.n_directional, pos + 6 * self.n_directional
+        for _ in range(self.n_directional if self.n_directional < GATHER_MIN else 0):
             m = None if k is None else k == idx
             wi, weight = _pick(m, tuple(values[pos:pos + 3]), wi), _pick(m, tuple(values[pos + 3:pos + 6]), weight)
             idx, pos = idx + 1, pos + 6
-        for _ in range(self.n_points):
+        if self.n_points >= GATHER_MIN:
+            rows = _block(values, pos, self.n_points, 6, zero)
+            m = (k >= idx) & (k < idx + self.n_points)
+            row = rows[(k - idx).clamp(0, self.n_points - 1)]
+            to = (row[:, 0] - x[0], row[:, 1] - x[1], row[:, 2] - x[2])
+            r2 = (to[0] * to[0] + to[1] * to[1] + to[2] * to[2]).clamp(min=1e-12)
+            r = torch.sqrt(r2)
+            wi = _pick(m, (to[0] / r, to[1] / r, to[2] / r), wi)
+            dist = torch.where(m, r, dist)
+            weight = _pick(m, (row[:, 3] / r2, row[:, 4] / r2, row[:, 5] / r2), weight)
+            idx, pos = idx + self.n_points, pos + 6 * self.n_points
+        for _ in range(self.n_points if self.n_points < GATHER_MIN else 0):
             m = None if k is None else k == idx
             p, inten = values[pos:pos + 3], values[pos + 3:pos + 6]
             to = (p[0] - x[0], p[1] - x[1], p[2] - x[2])
