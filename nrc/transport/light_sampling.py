@@ -410,9 +410,9 @@ def resample(candidates: list[Candidate], phase_of: Callable[[tuple], Tensor], u
 
 
 def _select(m: Tensor, a: Candidate, b: Candidate) -> Candidate:
-    wi = tuple(torch.where(m, x, y) for x, y in zip(a[0], b[0]))
-    weight = tuple(torch.where(m, x, y) for x, y in zip(a[2], b[2]))
-    return wi, torch.where(m, a[1], b[1]), weight, torch.where(m, a[3], b[3]), torch.where(m, a[4], b[4])
+    """Candidate-wise ``where(m, a, b)``."""
+    return (_pick(m, a[0], b[0]), torch.where(m, a[1], b[1]), _pick(m, a[2], b[2]), torch.where(m, a[3], b[3]),
+            torch.where(m, a[4], b[4]))
 
 
 def power_heuristic(a: Tensor, b: Tensor | float) -> Tensor:
@@ -422,9 +422,6 @@ def power_heuristic(a: Tensor, b: Tensor | float) -> Tensor:
     return torch.where(den > 0, a2 / den.clamp(min=1e-30), torch.ones_like(den))
 
 
-GATHER_MIN = 3  # blocks of this many lights of a type (and power choices among as many) are looked up by index
-
-
 def _block(values: list, pos: int, count: int, width: int, like: Tensor) -> Tensor:
     """``values[pos : pos + count x width]`` (numbers or 0-d tensors) as a ``(count, width)`` tensor."""
     vals = values[pos:pos + count * width]
@@ -432,10 +429,8 @@ def _block(values: list, pos: int, count: int, width: int, like: Tensor) -> Tens
     return t.reshape(count, width)
 
 
-def _pick(m: Tensor | None, new: tuple, old: tuple) -> tuple:
-    """Component-wise ``where(m, new, old)``; ``m=None`` takes ``new`` (a light chosen with probability 1)."""
-    if m is None:
-        return tuple(n if isinstance(n, Tensor) and n.dim() else torch.zeros_like(o) + n for n, o in zip(new, old))
+def _pick(m: Tensor, new: tuple, old: tuple) -> tuple:
+    """Component-wise ``where(m, new, old)``."""
     return tuple(torch.where(m, n, o) for n, o in zip(new, old))
 
 
@@ -450,8 +445,8 @@ class LightTable:
     direction, ``P(select sky) / (4 pi)``; with ``power`` or ``ris`` selection (and several lights) then every
     light's selection probability, in light order (the uniform choice needs none). ``ris`` draws
     :attr:`candidates` samples of that source distribution and :func:`resample` keeps one
-    (:meth:`sample_ris`). A type with :data:`GATHER_MIN` or more lights (and a power choice among as many) is
-    looked up by the chosen index in a ``(count, 6)`` block instead of a masked selection per light.
+    (:meth:`sample_ris`). The chosen light is looked up by its index in its type's ``(count, 6)`` block (no
+    masked selection per light).
 
     Args:
         lights: the sampler whose lights are read.
@@ -510,73 +505,47 @@ class LightTable:
         """``(wi, distance, weight, light_pdf, is_env)`` as :meth:`LightSampler.sample`, in component form,
         with :attr:`values` as numbers or 0-d tensors and ``u`` the :attr:`lanes` uniforms."""
         n = self.n_lights
-        lane = 0
-        k = None
         power = self.selection == "power"
         zero = torch.zeros_like(x[0])
-        if power and n >= GATHER_MIN:  # many lights: one comparison against the CDF and a lookup, no chain
+        # the chosen light's index k in light order (0 with one light), from the choice's uniform (lane 0)
+        lane = int(n > 1)
+        if power:  # the selection probabilities are the last n values: k = the CDF steps at or below u
             pmf = _block(values, len(values) - n, n, 1, zero)[:, 0]
             k = (u[0][:, None] >= torch.cumsum(pmf, 0)[None, :-1]).long().sum(-1)
             inv = 1.0 / pmf[k].clamp(min=1e-30)
-            lane = 1
-        elif power:  # the selection probabilities are the last n values; k = the number of CDF steps below u
-            pmf = values[len(values) - n:]
-            acc, k = pmf[0], torch.zeros_like(x[0], dtype=torch.long)
-            for j in range(1, n):
-                k = k + (u[0] >= acc).long()
-                acc = acc + pmf[j]
-            inv = pmf[n - 1] + torch.zeros_like(x[0])
-            for j in range(n - 1):
-                inv = torch.where(k == j, pmf[j] + torch.zeros_like(x[0]), inv)
-            inv = 1.0 / inv.clamp(min=1e-30)
-            lane = 1
         elif n > 1:
             k = (u[0] * n).long().clamp(max=n - 1)
-            lane = 1
+        else:
+            k = torch.zeros_like(x[0], dtype=torch.long)
         wi: tuple = (zero, zero + 1.0, zero)
         dist = torch.full_like(zero, math.inf)
         weight: tuple = (zero, zero, zero)
         is_env = torch.zeros_like(zero, dtype=torch.bool)
         idx, pos = 0, 0
-        if self.n_directional >= GATHER_MIN:  # a lookup of the chosen light's row
-            rows = _block(values, pos, self.n_directional, 6, zero)
-            m = (k >= idx) & (k < idx + self.n_directional)
-            row = rows[(k - idx).clamp(0, self.n_directional - 1)]
+        nd, npt = self.n_directional, self.n_points
+        if nd:  # the chosen light's row of the (nd, 6) block
+            m = (k >= idx) & (k < idx + nd)
+            row = _block(values, pos, nd, 6, zero)[(k - idx).clamp(0, nd - 1)]
             wi = _pick(m, tuple(row[:, j] for j in range(3)), wi)
             weight = _pick(m, tuple(row[:, j] for j in range(3, 6)), weight)
-            idx, pos = idx + self.n_directional, pos + 6 * self.n_directional
-        for _ in range(self.n_directional if self.n_directional < GATHER_MIN else 0):
-            m = None if k is None else k == idx
-            wi, weight = _pick(m, tuple(values[pos:pos + 3]), wi), _pick(m, tuple(values[pos + 3:pos + 6]), weight)
-            idx, pos = idx + 1, pos + 6
-        if self.n_points >= GATHER_MIN:
-            rows = _block(values, pos, self.n_points, 6, zero)
-            m = (k >= idx) & (k < idx + self.n_points)
-            row = rows[(k - idx).clamp(0, self.n_points - 1)]
+            idx, pos = idx + nd, pos + 6 * nd
+        if npt:
+            m = (k >= idx) & (k < idx + npt)
+            row = _block(values, pos, npt, 6, zero)[(k - idx).clamp(0, npt - 1)]
             to = (row[:, 0] - x[0], row[:, 1] - x[1], row[:, 2] - x[2])
             r2 = (to[0] * to[0] + to[1] * to[1] + to[2] * to[2]).clamp(min=1e-12)
             r = torch.sqrt(r2)
             wi = _pick(m, (to[0] / r, to[1] / r, to[2] / r), wi)
             dist = torch.where(m, r, dist)
             weight = _pick(m, (row[:, 3] / r2, row[:, 4] / r2, row[:, 5] / r2), weight)
-            idx, pos = idx + self.n_points, pos + 6 * self.n_points
-        for _ in range(self.n_points if self.n_points < GATHER_MIN else 0):
-            m = None if k is None else k == idx
-            p, inten = values[pos:pos + 3], values[pos + 3:pos + 6]
-            to = (p[0] - x[0], p[1] - x[1], p[2] - x[2])
-            r2 = (to[0] * to[0] + to[1] * to[1] + to[2] * to[2]).clamp(min=1e-12)
-            r = torch.sqrt(r2)
-            wi = _pick(m, (to[0] / r, to[1] / r, to[2] / r), wi)
-            dist = r if m is None else torch.where(m, r, dist)
-            weight = _pick(m, (inten[0] / r2, inten[1] / r2, inten[2] / r2), weight)
-            idx, pos = idx + 1, pos + 6
+            idx, pos = idx + npt, pos + 6 * npt
         if self.has_uniform_env:
-            m = None if k is None else k == idx
+            m = k == idx
             z = 1.0 - 2.0 * u[lane]
             rr = torch.sqrt((1.0 - z * z).clamp(min=0.0))
             phi = 2.0 * math.pi * u[lane + 1]
             wi = _pick(m, (rr * torch.cos(phi), rr * torch.sin(phi), z), wi)
-            is_env = torch.ones_like(is_env) if m is None else m
+            is_env = m
             env, pdf = values[pos:pos + 3], values[pos + 3]
             light_pdf = torch.where(is_env, zero + pdf, zero)
             weight = tuple(torch.where(is_env, e / pdf + zero, w * (inv if power else n)) for e, w in zip(env, weight))
