@@ -175,15 +175,16 @@ class EquiangularSampler:
         points: the scene's point lights (at least one).
         grid: the density grid; majorants: its brick majorants (the sampled parts, and the estimator's).
         albedo, g: the medium's albedo and HG asymmetry.
-        transmittance: the configured estimator (``make_transmittance``), drawing from ``gen``.
+        transmittance: the configured estimator (``make_transmittance``; :meth:`contribution` passes it a
+            generator). Built once per scene (the phase table, the light choice), used by every frame.
     """
 
     def __init__(self, points: tuple[PointLight, ...], grid: Any, majorants: MajorantGrid, albedo: float, g: float,
-                 transmittance: Any, gen: torch.Generator) -> None:
+                 transmittance: Any) -> None:
         if not points:
             raise ValueError("equi-angular sampling needs at least one point light")
         self.grid, self.majorants, self.albedo, self.g = grid, majorants, float(albedo), float(g)
-        self.transmittance, self.gen = transmittance, gen
+        self.transmittance = transmittance
         dev = grid.device
         self.positions = torch.stack([lt.position for lt in points]).to(dev)
         self.intensities = torch.stack([lt.intensity for lt in points]).to(dev)
@@ -196,7 +197,8 @@ class EquiangularSampler:
         self.cdf[-1] = 1.0
         self.table = PhaseAngleTable(self.g, dev)
 
-    def contribution(self, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, beta: Tensor, u: Tensor) -> Tensor:
+    def contribution(self, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, beta: Tensor, u: Tensor,
+                     gen: torch.Generator) -> Tensor:
         """RGB ``(N, 3)``: ``beta`` x the estimate of one chosen point light's direct light scattered along the
         segments (``o``, ``d`` ``(N, 3)`` unit, ``[ta, tb]`` inside the box, ``u`` ``(N, 2)`` uniforms)."""
         k = torch.searchsorted(self.cdf, u[:, 0].contiguous(), right=True).clamp(max=len(self.cdf) - 1)
@@ -213,7 +215,7 @@ class EquiangularSampler:
         t_out = torch.minimum(self.grid.box.intersect(x, wl)[1], r)
         # the two transmittances in one estimator call: o -> x along d, x -> the light
         T = self.transmittance(self.grid, self.majorants, torch.cat([o, x]), torch.cat([d, wl]),
-                               torch.cat([ta, torch.zeros_like(t)]), torch.cat([t, t_out]), self.gen)
+                               torch.cat([ta, torch.zeros_like(t)]), torch.cat([t, t_out]), gen)
         n = len(t)
         w = sigma_s * hg_pdf(self.g, (d * wl).sum(-1)) * T[:n] * T[n:] / (pdf.clamp(min=1e-30) * r2 * sel)
         return torch.where(ok[:, None], beta * inten * w[:, None], torch.zeros_like(beta))

@@ -96,17 +96,17 @@ class EquiangularQueue(BatchQueue):
 
     The distance and the light choice come from the path's counter-based draw ``(hash(key ^ SALT), cnt)`` (its
     own stream: the step's draws use ``(key, cnt)``), so they depend on the path, not on the batching; the
-    transmittance estimator draws from ``sampler.gen`` like the shadow queue's."""
+    transmittance estimator draws from ``gen`` like the shadow queue's."""
 
     SALT = 0x5EA5EED
 
-    def __init__(self, sampler: Any, max_scatter: int, batch: int) -> None:
+    def __init__(self, sampler: Any, max_scatter: int, batch: int, gen: torch.Generator) -> None:
         super().__init__(batch)
-        self.sampler, self.max_scatter = sampler, max_scatter
+        self.sampler, self.max_scatter, self.gen = sampler, max_scatter, gen
 
     def trace(self, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, beta: Tensor, key: Tensor, cnt: Tensor) -> Tensor:
         u = torch.stack(counter_uniforms(hash32(key ^ self.SALT), cnt, 2), 1)
-        return self.sampler.contribution(o, d, ta, tb, beta, u)
+        return self.sampler.contribution(o, d, ta, tb, beta, u, self.gen)
 
 
 @dataclass

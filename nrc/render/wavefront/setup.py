@@ -76,6 +76,7 @@ class Core:
     scalars: tuple = ()  # (albedo, g, max_scatter, roulette threshold, rr_start, termination) for P
     last_startup_s: float = 0.0  # compile or cache-load seconds spent by the last choose()
     point_lights: tuple = ()  # sampled equi-angularly along segments (left out of the step's light table)
+    _equiangular: Any = None  # their EquiangularSampler, built by the first equiangular_queue()
     # auto with the step in the persistent cache: compile (a ~4 s load) from this fraction of compile_min_samples
     # on. Measured break-evens (2 cores): pt saves ~4.4 us a camera sample (170k -> 650k samples/s), so a 4.5 s
     # warm start pays from ~1 M samples = 1/4 of its 4 M; an nrc path saves ~15 us (frame 0.92 -> 0.46 s for
@@ -129,8 +130,10 @@ class Core:
         if not self.point_lights:
             return None
         albedo, g, max_scatter = self.scalars[:3]
-        sampler = EquiangularSampler(self.point_lights, self.grid, self.majorants, albedo, g, self.transmittance, gen)
-        return EquiangularQueue(sampler, int(max_scatter), batch)
+        if self._equiangular is None:  # once per core: the phase table and the light choice serve every frame
+            self._equiangular = EquiangularSampler(self.point_lights, self.grid, self.majorants, albedo, g,
+                                                   self.transmittance)
+        return EquiangularQueue(self._equiangular, int(max_scatter), batch, gen)
 
     def shadow_queue(self, machine: Machine, batch: int, gen: torch.Generator) -> ShadowQueue | None:
         """The queue for shadow rays that the machine's step does not trace itself (``None``: it does); its
