@@ -61,3 +61,21 @@ class Camera:
         d = self.forward + sx[:, None] * self.right + sy[:, None] * self.up
         d = d / d.norm(dim=-1, keepdim=True)
         return self.position.expand_as(d), d
+
+    def project(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """The pixels that world points ``x`` ``(N, 3)`` are seen through: ``(pixel (N,) int64 flat index,
+        inside (N,) bool)`` -- ``inside`` is false for points behind the camera or outside the image (their
+        pixel is 0). The inverse of :meth:`generate_rays`: a point on the ray of pixel ``p`` at any jitter
+        projects to ``p`` (up to rounding at the pixel's borders)."""
+        v = x - self.position
+        z = v @ self.forward
+        zs = torch.where(z > 0, z, torch.ones_like(z))
+        tan_half = math.tan(math.radians(self.fov_y) * 0.5)
+        aspect = self.width / self.height
+        sx = (v @ self.right) / (zs * tan_half * aspect)
+        sy = (v @ self.up) / (zs * tan_half)
+        col = torch.floor((sx + 1.0) * 0.5 * self.width)
+        row = torch.floor((1.0 - sy) * 0.5 * self.height)
+        inside = (z > 0) & (col >= 0) & (col < self.width) & (row >= 0) & (row < self.height)
+        pixel = torch.where(inside, row.long() * self.width + col.long(), torch.zeros_like(col, dtype=torch.long))
+        return pixel, inside

@@ -15,6 +15,10 @@ Estimator (per camera sample; SCENE.md conventions):
   their direct light is estimated along every flight segment by equi-angular distance sampling
   (:mod:`nrc.transport.equiangular`).
 * Optional Russian roulette on the throughput (off by default).
+* With ``renderer.reuse.mode`` ``spatial`` or ``spatiotemporal`` the image is rendered as ``spp`` passes of one
+  sample per pixel (sample ``j`` of every pixel in pass ``j``, the same paths as without reuse), and the first
+  vertex's next-event estimate of each pass is made by reservoir reuse across the pass's pixels and, for
+  ``spatiotemporal``, from the previous pass (a static camera: :mod:`nrc.render.wavefront.reuse`).
 
 Execution: the shared transport core (:mod:`nrc.render.wavefront`) -- the same step code for
 ``renderer.backend=eager`` and ``compiled`` (``auto`` chooses, see :mod:`nrc.render.wavefront.setup`). A fixed
@@ -43,6 +47,7 @@ from nrc.render.result import RenderResult
 from nrc.render.wavefront import BACKENDS, build_core, camera_paths
 from nrc.render.wavefront.driver import Wavefront
 from nrc.render.wavefront.machine import compiled_graphs
+from nrc.render.wavefront.reuse import ReservoirReuse, ReuseSettings, VertexRecord
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSamplingSettings
 from nrc.transport.rng import path_key, uniforms
@@ -79,6 +84,9 @@ class PathTracerSettings:
     light_sampling: LightSamplingSettings = LightSamplingSettings()
     """How lights are sampled: ``light_selection`` (``uniform`` | ``power`` | ``ris``), ``ris.candidates``,
     ``point_light_sampling`` (``none`` | ``equiangular``) (nrc.transport.light_sampling)."""
+    reuse: ReuseSettings = ReuseSettings()
+    """``reuse.mode`` (``none`` | ``spatial`` | ``spatiotemporal``), ``neighbors``, ``radius``, ``history``,
+    ``defer_g``: reservoir reuse at the first vertex (nrc.render.wavefront.reuse)."""
 
     @classmethod
     def from_config(cls, renderer: Any) -> PathTracerSettings:
@@ -96,6 +104,7 @@ class PathTracerSettings:
             compile_min_samples=cfg.get_int("compile_min_samples", lo=0),
             steps_per_call=cfg.get_int("steps_per_call", lo=1),
             light_sampling=LightSamplingSettings.from_config(cfg),
+            reuse=ReuseSettings.from_config(cfg),
         )
         for block in (rr, cfg):
             block.finish()
@@ -125,7 +134,8 @@ class PathTracer:
         self.core = build_core(scene.grid, self.lights, scene.albedo, scene.g, self.max_scatter, self.transmittance,
                                st.brick, st.free_flight, st.backend, st.steps_per_call, st.compile_min_samples,
                                st.rr_start if st.russian_roulette else None,
-                               point_lights=st.light_sampling.equiangular_points(scene))
+                               point_lights=st.light_sampling.equiangular_points(scene),
+                               reuse_vertex=st.reuse.vertex(scene.g))
         self.majorants = self.core.majorants
 
     def _camera_paths(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -135,9 +145,10 @@ class PathTracer:
         jitter = torch.stack(uniforms(key, torch.zeros_like(key), 2), dim=1)
         return camera_paths(self.core.step.layout, self.scene.camera, self.scene.grid, pix, jitter, key)
 
-    def render(self, progress: bool = False) -> RenderResult:
+    def render(self, progress: bool = False, on_pass: Any = None) -> RenderResult:
         """Render the scene; ``metrics`` name the backend (and why), the start-up (compile or cache load)
-        apart from ``time_render_s``, and the work counters."""
+        apart from ``time_render_s``, and the work counters. With reuse, ``on_pass(j, image (H, W, 3))`` gets
+        each 1-spp pass's own image."""
         cam = self.scene.camera
         total = cam.num_pixels * self.spp
         machine, backend, reason = self.core.choose(total)
@@ -149,7 +160,11 @@ class PathTracer:
         bar = tqdm(total=total, unit="sample", unit_scale=True, disable=not progress, desc="pt", leave=False,
                    mininterval=1.0)
         start = time.perf_counter()
-        wf.run(total, self._camera_paths, image, on_done=bar.update)
+        reuse_stats: dict[str, list] = {}
+        if self.settings.reuse.mode == "none":
+            wf.run(total, self._camera_paths, image, on_done=bar.update)
+        else:
+            wf = self._render_passes(machine, gen, image, bar, on_pass, reuse_stats)
         elapsed = time.perf_counter() - start
         bar.close()
         img = (image / self.spp).reshape(cam.height, cam.width, 3)
@@ -176,5 +191,39 @@ class PathTracer:
             **{f"time_{k}_s": v for k, v in wf.timers.items()},
             **wf.counts,
             **self.settings.light_sampling.metrics(self.lights),
+            **self.settings.reuse.metrics(self.scene.g),
+            **{k: (sum(v) if k in ("reuse_vertices", "time_reuse_s") else sum(v) / len(v)) for k, v in reuse_stats.items()},
         }
         return RenderResult(image=img.cpu().numpy(), metrics=metrics)
+
+    def _render_passes(self, machine: Any, gen: torch.Generator, image: torch.Tensor, bar: Any, on_pass: Any,
+                       stats: dict[str, list]) -> Wavefront:
+        """The ``spp`` one-sample passes of a render with reuse (module docstring); returns the last pass's
+        wavefront with the counters of all of them."""
+        cam, spp, st = self.scene.camera, self.spp, self.settings
+        n = cam.num_pixels
+        reuse = ReservoirReuse(st.reuse, self.scene.g, 1, self.scene.grid)
+        counts: dict[str, int] = {}
+        timers: dict[str, float] = {}
+        wf = None
+        for j in range(spp):
+            rec = VertexRecord.empty(n, st.reuse.vertex(self.scene.g), self.scene.albedo, False, self.device)
+            wf = Wavefront(machine, self.core.inputs, self.lights, self.slots,
+                           self.core.shadow_queue(machine, self.shadow_batch, gen), None,
+                           self.core.equiangular_queue(self.shadow_batch, gen), reuse=rec)
+            one = torch.zeros_like(image)
+            wf.run(n, lambda r, j=j: self._camera_paths(r * spp + j), one, on_done=bar.update)
+            contribution, s = reuse.frame(rec, cam, self.lights, self.transmittance, self.scene.grid,
+                                          self.majorants, gen, self.shadow_batch)
+            one += contribution
+            image += one
+            if on_pass is not None:
+                on_pass(j, one.reshape(cam.height, cam.width, 3))
+            for k, v in s.items():
+                stats.setdefault(k, []).append(v)
+            for k, v in wf.counts.items():
+                counts[k] = counts.get(k, 0) + v
+            for k, v in wf.timers.items():
+                timers[k] = timers.get(k, 0.0) + v
+        wf.counts, wf.timers = counts, timers
+        return wf

@@ -214,6 +214,7 @@ class LightSample:
     weight: Tensor  # (N, 3) light contribution / (pdf * P(select)), without phase and transmittance
     light_pdf: Tensor  # (N,) P(select) * solid-angle pdf for environment samples, 0 for delta lights
     is_env: Tensor  # (N,) bool: an environment sample (MIS applies)
+    light: Tensor | None = None  # (N,) int64 index of the chosen light in light order (:meth:`LightSampler.evaluate`)
 
 
 class LightSampler:
@@ -361,7 +362,54 @@ class LightSampler:
             weight = torch.where(is_env[:, None], env_w, weight * inv_select[:, None])
         else:
             weight = weight * inv_select[:, None]
-        return LightSample(wi, dist, weight, light_pdf, is_env)
+        return LightSample(wi, dist, weight, light_pdf, is_env, k)
+
+    @property
+    def env_index(self) -> int:
+        """Light index of the first environment light (every environment sample is evaluated as the sum of them
+        all, :meth:`evaluate`); ``n_lights`` when there is none."""
+        return len(self.directional) + len(self.points) if self.has_env else self.n_lights
+
+    def evaluate(self, light: Tensor, omega: Tensor, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """A light sample ``y = (light, omega)`` seen from other points: ``(wi (N, 3), distance (N,),
+        contribution (N, 3), p_src (N,))`` at points ``x`` ``(N, 3)``.
+
+        ``light`` ``(N,)`` indexes the lights in light order (any environment index, or :attr:`env_index`, means
+        the environment direction ``omega``; ``omega`` is ignored for the other lights). ``contribution`` is the
+        unshadowed light arriving at ``x`` without the phase function (``irradiance``, ``intensity / r^2``, the
+        summed environment radiance); ``p_src`` the source pdf with which :meth:`sample` draws ``y`` (its
+        selection probability for a delta light, that times the solid-angle pdf for the environment), the
+        same for every ``x``: a sample keeps its meaning when it is reused at another point (ReSTIR, on the
+        measure of light index x environment direction)."""
+        n, dev = x.shape[0], x.device
+        nd, npt = len(self.directional), len(self.points)
+        wi = omega.clone()
+        dist = torch.full((n,), float("inf"), device=dev)
+        contribution = torch.zeros(n, 3, device=dev)
+        sel = self._pmf[light.clamp(0, max(self.n_lights - 1, 0))] if self.selection != "uniform" else \
+            torch.full((n,), 1.0 / max(self.n_lights, 1), device=dev)
+        if nd:
+            m = light < nd
+            kk = light.clamp(0, nd - 1)
+            wi = torch.where(m[:, None], -torch.stack([lt.direction for lt in self.directional])[kk], wi)
+            contribution = torch.where(m[:, None], torch.stack([lt.irradiance for lt in self.directional])[kk],
+                                       contribution)
+        if npt:
+            m = (light >= nd) & (light < nd + npt)
+            kk = (light - nd).clamp(0, npt - 1)
+            to = torch.stack([lt.position for lt in self.points])[kk] - x
+            r2 = (to * to).sum(-1).clamp(min=1e-12)
+            r = torch.sqrt(r2)
+            wi = torch.where(m[:, None], to / r[:, None], wi)
+            dist = torch.where(m, r, dist)
+            contribution = torch.where(m[:, None], torch.stack([lt.intensity for lt in self.points])[kk] / r2[:, None],
+                                       contribution)
+        p_src = sel
+        if self.has_env:
+            env = light >= nd + npt
+            contribution = torch.where(env[:, None], self.env_radiance(omega), contribution)
+            p_src = torch.where(env, self.env_pdf(omega), sel)
+        return wi, dist, contribution, p_src
 
 
 def luminance3(c: tuple) -> Tensor:

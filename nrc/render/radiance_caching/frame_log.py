@@ -56,6 +56,8 @@ class FrameLog:
                 self.writer.add_scalar("loss/frame" if key == "loss" else f"error/{key}", value, frame)
             elif key in LIGHT_SCALARS and value is not None:
                 self.writer.add_scalar(f"light/{key}", value, frame)
+            elif key.startswith("reuse_") and value is not None:  # reservoir reuse counters (wavefront/reuse.py)
+                self.writer.add_scalar(f"reuse/{key[6:]}", value, frame)
         if (self.image_every and frame % self.image_every == 0) or force_images:
             for name, img in images.items():
                 if name not in self.exposure:

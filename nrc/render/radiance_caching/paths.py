@@ -5,7 +5,10 @@ working set of ``slots`` paths by the path tracer's transport core (:mod:`nrc.re
 step code, eager or compiled: ``renderer.backend``): delta tracking against the brick majorants, next-event
 estimation at every real scattering vertex (one light chosen by ``renderer.light_selection``, transmittance
 by ratio tracking in the step or the configured estimator), phase sampling with MIS against the environment. The NRC part of the
-step is its vertex: the termination rule, the training records and the cache query.
+step is its vertex: the termination rule, the training records and the cache query. With ``renderer.reuse`` the
+render paths' first vertex is recorded instead of estimating its direct light, which the renderer's reuse pass
+adds (:mod:`nrc.render.wavefront.reuse`; a path that terminates there into the cache is recorded only with
+``cache_target=indirect``, whose terminating vertices estimate their direct light).
 
 Cache termination (:mod:`nrc.render.radiance_caching.termination`) at a real scattering vertex ``m``: the path stops
 without next-event estimation and adds ``beta x cache(x_m, d_m)`` where ``beta`` is its throughput up to
@@ -44,6 +47,7 @@ can batch and filter them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -53,6 +57,7 @@ from nrc.transport.rng import RandomSource
 from nrc.render.radiance_caching.termination import Termination
 from nrc.render.wavefront import build_core, camera_paths
 from nrc.render.wavefront.driver import Harvest, Wavefront
+from nrc.render.wavefront.reuse import VertexRecord
 from nrc.render.wavefront.step import NRCRule
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler, LightSamplingSettings
@@ -110,6 +115,7 @@ class FrameTrace:
     counts: dict[str, int] = field(default_factory=dict)
     timers: dict[str, float] = field(default_factory=dict)
     direct: Tensor | None = None  # cache_target=indirect: (N_train * V, 3) each record's direct light
+    reuse: Any = None  # the render paths' reuse vertices (reuse.VertexRecord; None without reuse)
 
 
 class NRCPathTracer:
@@ -130,7 +136,7 @@ class NRCPathTracer:
                  extra_vertices: int, slots: int, shadow_batch: int, brick: object = "auto",
                  free_flight: str = "brick", backend: str = "eager", steps_per_call: int = 1,
                  compile_min_samples: int = 0, cache_target: str = "full",
-                 light_sampling: LightSamplingSettings = LightSamplingSettings()) -> None:
+                 light_sampling: LightSamplingSettings = LightSamplingSettings(), reuse_vertex: int = 0) -> None:
         self.scene = scene
         self.device = scene.device
         self.transmittance = transmittance
@@ -141,6 +147,7 @@ class NRCPathTracer:
         self.shadow_batch = shadow_batch
         self.cache_target = cache_target
         self.light_sampling = light_sampling
+        self.reuse_vertex = reuse_vertex  # render paths' vertex recorded for reservoir reuse (0: none)
         self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples)
         self._cores: dict = {}
         self.core = self._core(RandomSource.counter_uniforms)
@@ -155,7 +162,7 @@ class NRCPathTracer:
                 s.grid, self.light_sampling.sampler(s), s.albedo, s.g, s.integrator.max_scatter,
                 self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V, self.cache_target),
                 termination=self.termination, uniforms=uniforms, inline_shadows=False,
-                point_lights=self.light_sampling.equiangular_points(s))
+                point_lights=self.light_sampling.equiangular_points(s), reuse_vertex=self.reuse_vertex)
             self._cores[uniforms].warm_fraction = 1 / 12  # see Core.warm_fraction
         return self._cores[uniforms]
 
@@ -203,8 +210,10 @@ class NRCPathTracer:
                      torch.zeros(ps.n_train * V, dtype=torch.bool, device=dev),
                      torch.zeros(ps.n_train, dtype=torch.bool, device=dev), discard + 1 if indirect else None)
         shadow = core.shadow_queue(machine, self.shadow_batch, rng.generator)
+        rec = VertexRecord.empty(ps.n_render, self.reuse_vertex, self.scene.albedo, indirect, dev) \
+            if self.reuse_vertex else None
         wf = Wavefront(machine, core.inputs_for(lights), lights, self.slots, shadow, hv,
-                       core.equiangular_queue(self.shadow_batch, rng.generator))
+                       core.equiangular_queue(self.shadow_batch, rng.generator), reuse=rec)
         layout = machine.step.layout
         wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, discard), acc)
         counts = dict(wf.counts)
@@ -222,5 +231,5 @@ class NRCPathTracer:
             query_w=cat("w", (0, 3), torch.float32), query_dest=cat("dest", (0,), torch.long),
             query_pid=cat("pid", (0,), torch.long), rec_x=hv.rec_x, rec_d=hv.rec_d, rec_valid=hv.rec_valid,
             scattered=hv.scattered, counts=counts, timers=timers,
-            direct=acc[discard + 1:] if indirect else None,
+            direct=acc[discard + 1:] if indirect else None, reuse=rec,
         )

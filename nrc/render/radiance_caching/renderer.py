@@ -60,6 +60,7 @@ from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 from nrc.transport.rng import RandomSource
 from nrc.render.wavefront.machine import compiled_graphs
+from nrc.render.wavefront.reuse import ReservoirReuse
 from nrc.render.radiance_caching.training_set import (auto_training_size, frame_records, medium_pixels,
                                                       training_positions, training_targets)
 from nrc.scene import Scene
@@ -157,7 +158,9 @@ class NRCRenderer:
         self.tracer = NRCPathTracer(scene, self.transmittance, st.termination, tr.records_per_path,
                                     tr.extra_vertices, st.slots, st.shadow_batch, st.brick, st.free_flight,
                                     st.backend, st.steps_per_call, st.compile_min_samples, st.cache_target,
-                                    st.light_sampling)
+                                    st.light_sampling, st.reuse.vertex(scene.g))
+        self.reuse = ReservoirReuse(st.reuse, scene.g, scene.integrator.spp, scene.grid) \
+            if st.reuse.mode != "none" else None
         self.tracer.frames = self.frames
         self.lights = st.light_sampling.sampler(scene)
         self.reference = self._load_reference(st.reference)
@@ -222,6 +225,13 @@ class NRCRenderer:
         ps = PathSet(camera, scene.integrator.spp, train_xy, unbiased)
         lights = self.frame_lights(frame)
         trace = self.tracer.trace(ps, lights, rng)
+        reuse_stats: dict[str, Any] = {}
+        if self.reuse is not None:  # the render paths' first-vertex direct light, by reservoir reuse
+            contribution, reuse_stats = self.reuse.frame(trace.reuse, camera, lights, self.transmittance,
+                                                         scene.grid, self.tracer.core.majorants, rng.generator,
+                                                         st.shadow_batch)
+            pix = torch.div(torch.arange(ps.n_render, device=self.device), ps.spp, rounding_mode="floor")
+            trace.acc.index_add_(0, pix, contribution)
         t1 = time.perf_counter()
 
         # Training paths' terminal queries read the raw weights (training.query_weights=raw; a cache without
@@ -267,7 +277,7 @@ class NRCRenderer:
             "train_batches": len(batches), "train_records_valid": int(valid.sum()),
             "training_pixels_scattering": int(trace.scattered.sum()),
             **{f"time_{k}_s": v for k, v in trace.timers.items()}, **trace.counts, **infer_counts,
-            **{k: v for k, v in st.light_sampling.metrics(lights).items() if k in LIGHT_SCALARS},
+            **{k: v for k, v in st.light_sampling.metrics(lights).items() if k in LIGHT_SCALARS}, **reuse_stats,
         }
         return image, stats, losses
 
@@ -293,6 +303,7 @@ class NRCRenderer:
             self.checkpoint_bytes = save_checkpoint(path, {
                 "frame": frame, "cache": self.cache.state_dict(), "ring": self.ring.state_dict(),
                 "accum": accum.cpu(), "n_accum": n_accum, "history": plain(log.history),
+                "reuse": self.reuse.state_dict() if self.reuse is not None else None,
                 "config": self.config_yaml})
         except OSError as exc:
             raise NRCError(f"cannot write the checkpoint {path}: {exc.strerror or exc}") from None
@@ -316,7 +327,10 @@ class NRCRenderer:
             raise CheckpointError(f"renderer.resume: {path} holds a {accum.shape[1]}x{accum.shape[0]} image, the "
                                   f"camera renders {cam.width}x{cam.height}")
         log.load(state["history"])
-        return int(state["frame"]), accum, int(state["n_accum"])
+        frame = int(state["frame"])
+        if self.reuse is not None:  # the reservoirs of the last frame done, seen by its camera
+            self.reuse.load_state_dict(state.get("reuse"), self.frame_camera(frame - 1), self.device)
+        return frame, accum, int(state["n_accum"])
 
     # ------------------------------------------------------------------ the frame loop
     def render(self, progress: bool = False, on_frame: FrameCallback | None = None) -> RenderResult:
@@ -375,7 +389,7 @@ class NRCRenderer:
             "renderer": self.name, "frames": self.frames, "first_frame": start, "spp": self.scene.integrator.spp,
             "accumulate": st.accumulate, "transmittance": self.transmittance.name,
             "termination": st.termination.rule, "cache_target": st.cache_target, "time_frames_s": elapsed,
-            **st.light_sampling.metrics(self.lights),
+            **st.light_sampling.metrics(self.lights), **st.reuse.metrics(self.scene.g),
             "shadow_rays": int(sum(h.get("shadow_rays", []))),
             "equiangular_segments": int(sum(h.get("equiangular_segments", []))),
             "training_image": [st.training.width, st.training.height], "training_auto": st.training.auto,

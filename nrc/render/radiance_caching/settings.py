@@ -12,6 +12,7 @@ from typing import Any
 from nrc.config import ConfigReader
 from nrc.errors import ConfigError
 from nrc.render.radiance_caching.termination import Termination
+from nrc.render.wavefront.reuse import ReuseSettings
 from nrc.transport.light_sampling import LightSamplingSettings
 
 ANIMATIONS = ("none", "orbit", "sun")
@@ -56,6 +57,7 @@ class NRCSettings:
     termination: Termination
     cache_target: str  # full | indirect (nrc.render.radiance_caching.paths)
     light_sampling: LightSamplingSettings  # light_selection, ris.candidates, point_light_sampling
+    reuse: ReuseSettings  # reservoir reuse at the render paths' first vertex (nrc.render.wavefront.reuse)
     training: TrainingSettings
     inference_batch: int
     accumulate: bool
@@ -84,6 +86,7 @@ class NRCSettings:
             termination=Termination.from_config(cfg.block("termination")),
             cache_target=cfg.get_choice("cache_target", CACHE_TARGETS, "indirect"),
             light_sampling=LightSamplingSettings.from_config(cfg, defaults=True),
+            reuse=ReuseSettings.from_config(cfg, defaults=True),
             training=TrainingSettings(
                 **_training_size(tr),
                 records_per_path=tr.get_int("records_per_path", 4, lo=1),

@@ -8,7 +8,8 @@ compacted whenever fewer than 90 % of the slots are live. Every ``SCATTER_EVERY`
 vertex run :meth:`Machine.vertex` (a subset: gathered, stepped, scattered back); next-event requests of an
 estimator without a per-step form are queued and traced in batches of ``shadow_batch`` rays. With
 ``point_light_sampling=equiangular`` the segments the slots start (camera rays, scattering rays) are queued
-for the point lights' equi-angular estimate (:class:`EquiangularQueue`).
+for the point lights' equi-angular estimate (:class:`EquiangularQueue`). With ``renderer.reuse`` the render
+paths' reuse vertices are recorded for the reuse pass (:mod:`nrc.render.wavefront.reuse`).
 
 Accumulator rows: row 0 of a slot is ``dest`` (a pixel, or a training path's discard row); rows ``j >= 1``
 (``nrc``) are training records, ``n_pixels + rec_base + j - 1``. With ``cache_target=indirect`` the direct
@@ -137,8 +138,9 @@ class Wavefront:
 
     def __init__(self, machine: Machine, inputs: SceneInputs, lights: LightSampler, slots: int,
                  shadow: ShadowQueue | None, harvest: Harvest | None = None,
-                 equiangular: EquiangularQueue | None = None) -> None:
+                 equiangular: EquiangularQueue | None = None, reuse: Any = None) -> None:
         self.machine, self.inputs, self.lights, self.slots = machine, inputs, lights, slots
+        self.reuse = reuse  # a reuse.VertexRecord: the render paths' reuse vertices are recorded into it
         self.layout: Layout = machine.step.layout
         self.shadow, self.harvest, self.equiangular = shadow, harvest, equiangular
         self.counts = {"tracking_steps": 0, "shadow_steps": 0, "shadow_rays": 0, "scatter_events": 0,
@@ -225,7 +227,10 @@ class Wavefront:
         if not len(sc):
             return
         self.counts["scatter_events"] += len(sc)
-        Fs, Is = self.machine.vertex(F.index_select(1, sc), I.index_select(1, sc), self.inputs)
+        Fi, Ii = F.index_select(1, sc), I.index_select(1, sc)
+        Fs, Is = self.machine.vertex(Fi, Ii, self.inputs)
+        if self.reuse is not None:
+            self.reuse.record(ly, Fi, Ii, Fs, Is)
         hv = self.harvest
         if hv is not None:
             rec = Is[ly.i("rec")]

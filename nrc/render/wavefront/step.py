@@ -85,13 +85,16 @@ class Transport:
 
     def __init__(self, layout: Layout, lights: LightTable, n_tables: int, inline_shadow: bool, roulette: bool,
                  russian_roulette: bool, nrc: NRCRule | None = None, uniforms: Uniforms = counter_uniforms,
-                 sampler: LightSampler | None = None) -> None:
+                 sampler: LightSampler | None = None, reuse_vertex: int = 0) -> None:
         if not lights.supported and sampler is None:
             raise ValueError("lat-long environment maps need the eager light sampler (sampler=)")
         self.sampler = None if lights.supported else sampler
         self.layout, self.lights, self.n_tables = layout, lights, n_tables
         self.inline_shadow, self.roulette, self.rr, self.nrc = inline_shadow, roulette, russian_roulette, nrc
         self.uniforms = uniforms
+        # reservoir reuse (nrc.render.wavefront.reuse): render paths' vertex reuse_vertex (0: none) leaves its
+        # next-event estimate to the reuse pass, which the driver records the vertex for
+        self.reuse_vertex = int(reuse_vertex)
         # vertex lanes: phase (2), then Russian roulette, the termination draw (nrc), the light choice
         self.lane_rr = 4
         self.lane_term = 4 + russian_roulette
@@ -112,8 +115,9 @@ class Transport:
         """What the step's code depends on, as plain values (stable across processes; the persistent cache's
         marker is named from it)."""
         fn = self.uniforms
-        return (self.layout.rows, self.layout.nrc, self.lights.structure, self.lights.supported, self.n_tables,
+        base = (self.layout.rows, self.layout.nrc, self.lights.structure, self.lights.supported, self.n_tables,
                 self.inline_shadow, self.roulette, self.rr, self.nrc, f"{fn.__module__}.{fn.__qualname__}")
+        return (*base, ("reuse", self.reuse_vertex)) if self.reuse_vertex else base
 
     @property
     def key(self) -> tuple[Any, ...]:
@@ -251,6 +255,9 @@ class Transport:
 
         # the vertex does next-event estimation: a scattering one; with cache_target=indirect a terminating one too
         nee = go if self.nrc is None or self.nrc.cache_target == "full" else torch.ones_like(go)
+        if self.reuse_vertex:  # a render path's reuse vertex: its next-event estimate is the reuse pass's
+            at = n_s == self.reuse_vertex
+            nee = nee & ~(at if self.nrc is None else at & (s.rec_base < 0))
         lights = self.lights
         sh = torch.zeros_like(s.shadow)
         wi, tse, csh = s.wi, s.tse, s.csh

@@ -1,0 +1,400 @@
+"""Reservoir reuse of light samples across pixels and frames (ReSTIR) at the render paths' first vertex.
+
+``renderer.reuse.mode`` (``pt`` and ``nrc``): ``none`` | ``spatial`` | ``spatiotemporal``. The render paths'
+vertex ``R`` (the first real scattering vertex; the second with deferred reuse, below) does no next-event
+estimate in the transport step: the driver records it (:class:`VertexRecord`: position, incoming direction,
+throughput x albedo, whether the path goes on and so takes part in the MIS against phase sampling) and after
+the wavefront this module makes its estimate of the direct light:
+
+1. **Initial reservoir**: the vertex's own RIS over ``M`` candidates of the source distribution (the
+   ``renderer.light_selection`` choice; ``M`` = ``renderer.ris.candidates`` for ``ris``, else 1), weighted
+   ``p_hat / p_src`` (:func:`nrc.transport.light_sampling.resample`'s weights); it keeps ``y`` and the
+   unbiased contribution weight ``W = sum w / (M p_hat(y))``.
+2. **Temporal** (``spatiotemporal``): the vertex is projected into the previous frame's camera (for ``pt``, the
+   previous 1-spp pass; the camera does not move) and that pixel's final reservoir of the previous frame is
+   combined with the new one, its confidence ``M`` clamped to ``history x M_candidates``.
+3. **Spatial**: ``neighbors`` reservoirs of pixels drawn uniformly in a ring of ``1 .. radius`` pixels around
+   the pixel (the same sample index for ``spp > 1``) are combined with the pixel's own.
+4. **Shading**: the chosen sample's shadow ray is traced *from the receiving vertex* with the configured
+   transmittance estimator, and ``beta x f(y) x mis(y) x T x W`` lands in the pixel.
+
+A light sample is ``y = (light index, direction)`` (:meth:`LightSampler.evaluate`): a delta light (sun, point)
+is its index, the environment a direction. Its source pdf is the same at every vertex, so a sample keeps its
+meaning (and its measure) at another vertex: no Jacobian. The target at vertex ``i`` (position ``x_i``,
+incoming direction ``d_i``) is ``p_hat_i(y) = luminance(unshadowed light at x_i) x HG(d_i . wi) x mis_i(y)``,
+``mis_i`` the power-heuristic weight of light sampling against phase sampling of the environment (1 for delta
+lights; the target follows the MIS-weighted integrand, or the resampling would favour the sky directions in the
+phase lobe that phase sampling covers, and the estimate would turn heavy-tailed), times the ``coarse``
+transmittance with ``target=coarse``.
+
+**Unbiased combination** (generalized RIS, Lin et al. 2022): inputs ``i = 0..K`` (0 the receiver) with samples
+``y_i``, unbiased contribution weights ``W_i`` and confidences ``M_i`` are resampled with weights
+``w_i = m_i(y_i) p_hat_0(y_i) W_i``, ``m_i`` the generalized balance heuristic
+``M_i p_hat_i(y) / sum_j M_j p_hat_j(y)`` over every input's own target (each evaluated at that input's
+vertex: ``(K+1)^2`` target evaluations); the kept ``y`` gets ``W = sum w / p_hat_0(y)`` and
+``M = sum M_j``. The ``m_i`` sum to one for every ``y`` and vanish where input ``i`` cannot produce ``y``, so
+the estimate is unbiased for any neighbours; visibility is not in the targets (they are unshadowed and, for
+HG with ``|g| < 1``, positive wherever the light is) and is re-traced at the receiver. The MIS weight against
+phase sampling of the environment is in the shaded integrand (power heuristic of the source pdf against the
+receiver's phase pdf, as the escape side uses), so the two halves still sum to the integral.
+
+**Deferred reuse** (as ReSTIR OG defers to vertices whose sampling distribution is broad): with
+``|g| >= defer_g`` the first vertex's phase lobe is so narrow that a neighbour's sample, chosen for another
+incoming direction, is nearly worthless there; reuse then starts at vertex 2 (``R = 2``; the first vertex
+keeps its own next-event estimate).
+
+Memory: ``~30`` floats a sample slot (``width x height x spp``) for the record, the reservoirs and the history.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, fields
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from nrc.render.wavefront.state import QUERY, Layout
+from nrc.transport.light_sampling import LightSampler, luminance3, power_heuristic
+from nrc.transport.phase import hg_pdf
+
+REUSE_MODES = ("none", "spatial", "spatiotemporal")
+REUSE_TARGETS = ("unshadowed", "coarse")
+
+
+class CoarseTransmittance:
+    """A deterministic approximation of the transmittance for the reuse targets (as Lin et al. 2021 put a
+    coarse-grid transmittance into theirs): the density averaged into at most ``cells^3`` cells, marched in
+    ``steps`` equal steps (midpoints, nearest cell). Always positive, so a target that multiplies by it keeps
+    the support of the unshadowed one (the estimate stays unbiased); cost ``steps`` gathers a ray.
+
+    Args:
+        grid: the :class:`~nrc.volume.grid.DensityGrid`.
+        cells: cells per axis at most; steps: march steps.
+    """
+
+    def __init__(self, grid: Any, cells: int = 32, steps: int = 16) -> None:
+        size = tuple(min(int(n), cells) for n in grid.shape)
+        sigma = torch.nn.functional.adaptive_avg_pool3d(grid.density[None, None], size)[0, 0] * grid.density_scale
+        self.sigma = sigma.reshape(-1).contiguous()
+        self.size = torch.tensor(size, device=grid.device)
+        self.lo, self.extent = grid.box.lo, grid.box.hi - grid.box.lo
+        self.steps = steps
+
+    def __call__(self, x: Tensor, wi: Tensor, t1: Tensor) -> Tensor:
+        """``T`` ``(N,)`` from ``x`` along unit ``wi`` over ``[0, t1]`` (``(N, 3)``, ``(N, 3)``, ``(N,)``)."""
+        t = (torch.arange(self.steps, device=x.device, dtype=x.dtype) + 0.5) / self.steps
+        p = x[:, None, :] + (t[None, :, None] * t1[:, None, None]) * wi[:, None, :]  # (N, S, 3)
+        s = (p - self.lo) / self.extent
+        inside = ((s >= 0) & (s < 1)).all(-1)
+        c = torch.minimum((s.clamp(min=0.0) * self.size).long(), self.size - 1)
+        flat = (c[..., 0] * self.size[1] + c[..., 1]) * self.size[2] + c[..., 2]
+        tau = torch.where(inside, self.sigma[flat], torch.zeros_like(t1[:, None])).sum(1) * t1 / self.steps
+        return torch.exp(-tau)
+
+
+@dataclass(frozen=True)
+class ReuseSettings:
+    """``renderer.reuse`` (``conf/renderer/pt.yaml``, ``nrc.yaml``; one reader for both renderers)."""
+
+    mode: str = "none"
+    """``none`` | ``spatial`` | ``spatiotemporal`` (module docstring)."""
+    neighbors: int = 4
+    """Spatial neighbours ``K`` combined per pixel (``>= 1``; the combination costs ``(K + 1)^2`` target
+    evaluations)."""
+    radius: float = 10.0
+    """Spatial neighbours are drawn uniformly in a ring of 1 to ``radius`` pixels (``>= 1``)."""
+    history: float = 20.0
+    """Temporal reuse: the previous reservoir's confidence ``M`` is clamped to ``history`` times the initial
+    candidates (``> 0``), which bounds how long an old sample can dominate."""
+    defer_g: float = 1.0
+    """Reuse starts at vertex 2 when ``|g| >= defer_g`` (deferred reuse; ``1``: never, as ``|g| < 1``)."""
+    target: str = "unshadowed"
+    """The resampling target: ``unshadowed`` (light x phase) or ``coarse`` (times :class:`CoarseTransmittance`
+    towards the light)."""
+
+    @classmethod
+    def from_config(cls, cfg: Any, defaults: bool = False) -> ReuseSettings:
+        """Read the ``reuse`` block of a :class:`nrc.config.ConfigReader` of the ``renderer`` block
+        (``defaults``: missing keys take this class's defaults; otherwise they are required)."""
+        d = cls()
+        r = cfg.block("reuse")
+        dflt = (lambda v: (v,)) if defaults else (lambda v: ())  # noqa: E731
+        kw = {"default": d.mode} if defaults else {}
+        settings = cls(mode=r.get_choice("mode", list(REUSE_MODES), **kw),
+                       neighbors=r.get_int("neighbors", *dflt(d.neighbors), lo=1),
+                       radius=r.get_float("radius", *dflt(d.radius), lo=1.0),
+                       history=r.get_float("history", *dflt(d.history), lo=0.0, lo_open=True),
+                       defer_g=r.get_float("defer_g", *dflt(d.defer_g), lo=0.0, hi=1.0),
+                       target=r.get_choice("target", list(REUSE_TARGETS), **({"default": d.target} if defaults else {})))
+        r.finish()
+        return settings
+
+    def vertex(self, g: float) -> int:
+        """The render paths' vertex whose next-event estimate is reused (0: none)."""
+        if self.mode == "none":
+            return 0
+        return 2 if abs(float(g)) >= self.defer_g else 1
+
+    def metrics(self, g: float) -> dict[str, Any]:
+        return {"reuse": self.mode, "reuse_neighbors": self.neighbors if self.mode != "none" else 0,
+                "reuse_radius": self.radius, "reuse_history": self.history, "reuse_vertex": self.vertex(g),
+                "reuse_target": self.target}
+
+
+@dataclass
+class VertexRecord:
+    """The render paths' reuse vertices of one frame (or ``pt`` pass), one row per sample slot
+    ``pixel x spp + sample``: position ``x``, incoming unit direction ``d``, throughput x albedo ``beta``
+    (``(N, 3)``), ``mis`` (the path goes on from it: the environment's MIS applies) and ``valid`` (``(N,)``)."""
+
+    vertex: int
+    albedo: float
+    indirect: bool  # nrc cache_target=indirect: a path terminating there records it too (its NEE, no MIS)
+    x: Tensor
+    d: Tensor
+    beta: Tensor
+    mis: Tensor
+    valid: Tensor
+
+    @classmethod
+    def empty(cls, n: int, vertex: int, albedo: float, indirect: bool, device: torch.device) -> VertexRecord:
+        z3 = torch.zeros(n, 3, device=device)
+        zb = torch.zeros(n, dtype=torch.bool, device=device)
+        return cls(vertex, float(albedo), indirect, z3, z3.clone(), z3.clone(), zb, zb.clone())
+
+    @property
+    def n(self) -> int:
+        return self.x.shape[0]
+
+    def record(self, layout: Layout, F: Tensor, I: Tensor, Fs: Tensor, Is: Tensor) -> None:
+        """Record the reuse vertices among slots ``(F, I)`` before and ``(Fs, Is)`` after the vertex step."""
+        ly = layout
+        at = I[ly.i("n")] == self.vertex - 1
+        if ly.nrc:
+            at = at & (I[ly.i("rec_base")] < 0)
+        go = Is[ly.i("flight")] != QUERY
+        idx = (at & (go | self.indirect)).nonzero().squeeze(1)
+        if not len(idx):
+            return
+        slot = (I[ly.i("pid")] if ly.nrc else I[ly.i("dest")])[idx]
+        self.x[slot] = Fs[ly.f("o")][:, idx].T
+        self.d[slot] = F[ly.f("d")][:, idx].T
+        self.beta[slot] = F[ly.f("beta")][:, idx].T * self.albedo
+        self.mis[slot] = go[idx]
+        self.valid[slot] = True
+
+
+@dataclass
+class Reservoirs:
+    """One reservoir per sample slot: the kept sample ``(light (N,) int64, omega (N, 3))``, its unbiased
+    contribution weight ``W`` and confidence ``M`` (``(N,)``), and the vertex it belongs to (``x``, ``d``,
+    ``mis``, ``valid``)."""
+
+    light: Tensor
+    omega: Tensor
+    W: Tensor
+    M: Tensor
+    x: Tensor
+    d: Tensor
+    mis: Tensor
+    valid: Tensor
+
+    def take(self, idx: Tensor) -> Reservoirs:
+        return Reservoirs(*(getattr(self, f.name)[idx] for f in fields(self)))
+
+    def state_dict(self) -> dict[str, Tensor]:
+        return {f.name: getattr(self, f.name).cpu() for f in fields(self)}
+
+    @classmethod
+    def from_state(cls, state: dict[str, Tensor], device: torch.device) -> Reservoirs:
+        return cls(**{f.name: state[f.name].to(device) for f in fields(cls)})
+
+
+def _choose(ws: list[Tensor], u: Tensor) -> tuple[Tensor, Tensor]:
+    """Index ``(N,)`` of the input chosen with probability ``w_i / sum w`` by the uniforms ``u``, and ``sum w``
+    (the index of a positive weight wherever the sum is positive)."""
+    w = torch.stack(ws, 1)
+    cum = torch.cumsum(w, 1)
+    total = cum[:, -1]
+    sel = (cum <= (u * total)[:, None]).sum(1).clamp(max=len(ws) - 1)
+    return torch.where(total > 0, sel, torch.zeros_like(sel)), total
+
+
+def _gather(values: list[Tensor], sel: Tensor) -> Tensor:
+    return torch.stack(values, 1)[torch.arange(len(sel), device=sel.device), sel]
+
+
+class ReservoirReuse:
+    """The reuse pass of one renderer (module docstring); keeps the previous frame's reservoirs.
+
+    Args:
+        settings: ``renderer.reuse``.
+        g: the medium's HG asymmetry.
+        spp: sample slots per pixel.
+        grid: the density grid (the box for the targets' rays; the ``coarse`` target's density).
+    """
+
+    def __init__(self, settings: ReuseSettings, g: float, spp: int, grid: Any) -> None:
+        self.settings, self.g, self.spp, self.grid = settings, float(g), int(spp), grid
+        self.coarse = CoarseTransmittance(grid) if settings.target == "coarse" else None
+        self.prev: Reservoirs | None = None
+        self.prev_camera: Any = None
+
+    # ------------------------------------------------------------------ targets
+    def target(self, lights: LightSampler, light: Tensor, omega: Tensor, x: Tensor, d: Tensor,
+               mis: Tensor) -> Tensor:
+        """``p_hat`` ``(N,)`` of samples ``(light, omega)`` at vertices ``(x, d, mis)``."""
+        wi, dist, c, p_src = lights.evaluate(light, omega, x)
+        phase = hg_pdf(self.g, (d * wi).sum(-1))
+        p = luminance3(c.unbind(1)) * phase * self._mis(lights, light, p_src, phase, mis)
+        if self.coarse is not None:
+            p = p * self.coarse(x, wi, torch.minimum(self.grid.box.intersect(x, wi)[1], dist))
+        return p
+
+    @staticmethod
+    def _mis(lights: LightSampler, light: Tensor, p_src: Tensor, phase: Tensor, mis: Tensor) -> Tensor | float:
+        """The light-sampling MIS weight against phase sampling of the environment (1 for the delta lights and
+        where the path does not go on): part of the integrand, so part of the target too -- without it the
+        resampling favours sky directions in the phase lobe, which phase sampling covers, and the estimate
+        turns heavy-tailed."""
+        if not lights.has_env:
+            return 1.0
+        env = (light >= lights.env_index) & mis
+        return torch.where(env, power_heuristic(p_src, phase), torch.ones_like(phase))
+
+    def initial(self, rec: VertexRecord, lights: LightSampler, gen: torch.Generator) -> Reservoirs:
+        """Each recorded vertex's RIS over the sampler's candidates (module docstring, step 1)."""
+        n, dev = rec.n, rec.x.device
+        m = lights.candidates
+        u = torch.rand(n, 4 * m + 1, generator=gen, device=dev)
+        ws, ks, om = [], [], []
+        for j in range(m):
+            ls = lights.sample(rec.x, u[:, 4 * j:4 * j + 4])
+            phase = hg_pdf(self.g, (rec.d * ls.wi).sum(-1))
+            p_src = lights.evaluate(ls.light, ls.wi, rec.x)[3]
+            w = luminance3(ls.weight.unbind(1)) * phase * self._mis(lights, ls.light, p_src, phase, rec.mis)
+            if self.coarse is not None:
+                w = w * self.coarse(rec.x, ls.wi, torch.minimum(self.grid.box.intersect(rec.x, ls.wi)[1], ls.distance))
+            ws.append(w)
+            ks.append(ls.light)
+            om.append(ls.wi)
+        sel, total = _choose(ws, u[:, 4 * m])
+        light = _gather(ks, sel)
+        omega = torch.stack(om, 1)[torch.arange(n, device=dev), sel]
+        ph = self.target(lights, light, omega, rec.x, rec.d, rec.mis)
+        ok = rec.valid & (total > 0) & (ph > 0)
+        W = torch.where(ok, total / (m * ph).clamp(min=1e-30), torch.zeros_like(total))
+        M = torch.where(rec.valid, torch.full_like(total, float(m)), torch.zeros_like(total))
+        return Reservoirs(light, omega, W, M, rec.x, rec.d, rec.mis, rec.valid)
+
+    def combine(self, inputs: list[Reservoirs], lights: LightSampler, u: Tensor) -> tuple[Reservoirs, Tensor]:
+        """Generalized RIS of ``inputs`` (``inputs[0]`` the receivers) with the generalized balance heuristic
+        (module docstring); returns the receivers' new reservoirs and the index of the input each kept."""
+        rx = inputs[0]
+        Ms = [torch.where(r.valid & rx.valid, r.M, torch.zeros_like(r.M)) for r in inputs]
+        ph = [[self.target(lights, ri.light, ri.omega, rj.x, rj.d, rj.mis) for rj in inputs] for ri in inputs]
+        ws = []
+        for i, ri in enumerate(inputs):
+            den = sum(Ms[j] * ph[i][j] for j in range(len(inputs)))
+            m_i = torch.where(den > 0, Ms[i] * ph[i][i] / den.clamp(min=1e-30), torch.zeros_like(den))
+            ws.append(m_i * ph[i][0] * ri.W)
+        sel, total = _choose(ws, u)
+        light = _gather([r.light for r in inputs], sel)
+        omega = torch.stack([r.omega for r in inputs], 1)[torch.arange(len(sel), device=sel.device), sel]
+        p0 = _gather([ph[i][0] for i in range(len(inputs))], sel)
+        ok = rx.valid & (total > 0) & (p0 > 0)
+        W = torch.where(ok, total / p0.clamp(min=1e-30), torch.zeros_like(total))
+        M = sum(Ms)
+        return Reservoirs(light, omega, W, M, rx.x, rx.d, rx.mis, rx.valid), sel
+
+    # ------------------------------------------------------------------ reuse
+    def temporal(self, cur: Reservoirs, camera: Any, lights: LightSampler, gen: torch.Generator,
+                 candidates: int) -> tuple[Reservoirs, Tensor, Tensor]:
+        """Combine with the previous frame's reservoir of the pixel the vertex projects to (step 2); returns
+        the new reservoirs, the mask of vertices that found a history and the kept input's index."""
+        n, dev = len(cur.W), cur.W.device
+        pix, inside = self.prev_camera.project(cur.x)
+        slot = pix * self.spp + torch.arange(n, device=dev) % self.spp
+        prev = self.prev.take(slot)
+        prev.valid = prev.valid & inside & cur.valid
+        prev.M = torch.minimum(prev.M, torch.full_like(prev.M, self.settings.history * candidates))
+        out, sel = self.combine([cur, prev], lights, torch.rand(n, generator=gen, device=dev))
+        return out, prev.valid, sel
+
+    def neighbours(self, camera: Any, gen: torch.Generator, n: int, device: torch.device) -> list[tuple[Tensor, Tensor]]:
+        """``neighbors`` (slot, inside) pairs per sample slot: pixels in the ring ``1 .. radius`` around it."""
+        st, W, H = self.settings, camera.width, camera.height
+        ids = torch.arange(n, device=device)
+        pix, j = torch.div(ids, self.spp, rounding_mode="floor"), ids % self.spp
+        col, row = pix % W, torch.div(pix, W, rounding_mode="floor")
+        u = torch.rand(st.neighbors, 2, n, generator=gen, device=device)
+        out = []
+        for k in range(st.neighbors):
+            r = torch.sqrt(1.0 + u[k, 0] * (st.radius ** 2 - 1.0))  # uniform in the ring's area
+            phi = 2.0 * math.pi * u[k, 1]
+            c = col + torch.round(r * torch.cos(phi)).long()
+            rr = row + torch.round(r * torch.sin(phi)).long()
+            inside = (c >= 0) & (c < W) & (rr >= 0) & (rr < H)
+            slot = torch.where(inside, (rr * W + c) * self.spp + j, ids)
+            out.append((slot, inside))
+        return out
+
+    def spatial(self, cur: Reservoirs, camera: Any, lights: LightSampler,
+                gen: torch.Generator) -> tuple[Reservoirs, Tensor]:
+        """Combine each reservoir with ``neighbors`` of the same frame (step 3)."""
+        n, dev = len(cur.W), cur.W.device
+        inputs = [cur]
+        for slot, inside in self.neighbours(camera, gen, n, dev):
+            r = cur.take(slot)
+            r.valid = r.valid & inside
+            inputs.append(r)
+        return self.combine(inputs, lights, torch.rand(n, generator=gen, device=dev))
+
+    def shade(self, res: Reservoirs, rec: VertexRecord, lights: LightSampler, transmittance: Any, grid: Any,
+              majorants: Any, gen: torch.Generator, batch: int) -> Tensor:
+        """``beta x f(y) x mis x T x W`` ``(N, 3)`` of each reservoir's sample at its own vertex (step 4)."""
+        out = torch.zeros(rec.n, 3, device=rec.x.device)
+        idx = (res.valid & (res.W > 0)).nonzero().squeeze(1)
+        for a in range(0, len(idx), batch):
+            i = idx[a:a + batch]
+            x, light = rec.x[i], res.light[i]
+            wi, dist, c, p_src = lights.evaluate(light, res.omega[i], x)
+            phase = hg_pdf(self.g, (rec.d[i] * wi).sum(-1))
+            w = phase * res.W[i] * self._mis(lights, light, p_src, phase, rec.mis[i])
+            t1 = torch.minimum(grid.box.intersect(x, wi)[1], dist)
+            T = transmittance(grid, majorants, x, wi, torch.zeros_like(t1), t1, gen)
+            out[i] = rec.beta[i] * c * (w * T)[:, None]
+        return out
+
+    def frame(self, rec: VertexRecord, camera: Any, lights: LightSampler, transmittance: Any, grid: Any,
+              majorants: Any, gen: torch.Generator, batch: int) -> tuple[Tensor, dict[str, Any]]:
+        """The reuse pass of a frame: ``(contribution (N, 3) per sample slot, counters)``; with
+        ``spatiotemporal`` the frame's final reservoirs become the next frame's history."""
+        t0 = time.perf_counter()
+        mode = self.settings.mode
+        cur = self.initial(rec, lights, gen)
+        n_valid = max(int(rec.valid.sum()), 1)
+        stats: dict[str, Any] = {"reuse_vertices": int(rec.valid.sum())}
+        if mode == "spatiotemporal" and self.prev is not None and len(self.prev.W) == rec.n:
+            cur, hist, sel = self.temporal(cur, camera, lights, gen, lights.candidates)
+            stats["reuse_temporal_found"] = int(hist.sum()) / n_valid
+            stats["reuse_temporal_accept"] = int((hist & (sel == 1)).sum()) / n_valid
+        cur, sel = self.spatial(cur, camera, lights, gen)
+        stats["reuse_spatial_accept"] = int((rec.valid & (sel > 0)).sum()) / n_valid
+        stats["reuse_mean_m"] = float(cur.M[rec.valid].mean()) if bool(rec.valid.any()) else 0.0
+        if mode == "spatiotemporal":
+            self.prev, self.prev_camera = cur, camera
+        out = self.shade(cur, rec, lights, transmittance, grid, majorants, gen, batch)
+        stats["time_reuse_s"] = time.perf_counter() - t0
+        return out, stats
+
+    def state_dict(self) -> dict[str, Any] | None:
+        """The history (``None`` without one) for a checkpoint; the caller restores ``prev_camera``."""
+        return None if self.prev is None else self.prev.state_dict()
+
+    def load_state_dict(self, state: dict[str, Any] | None, camera: Any, device: torch.device) -> None:
+        self.prev = None if state is None else Reservoirs.from_state(state, device)
+        self.prev_camera = camera if state is not None else None
