@@ -65,7 +65,7 @@ def test_merge_keeps_the_confidence_sum_and_the_contribution_weight():
     b = rr.initial(rec, lights, gen)
     v = rec.valid
     assert torch.equal(a.M[v], torch.full_like(a.M[v], 4.0)) and bool((a.M[~v] == 0).all())
-    dead = Reservoirs(b.light, b.omega, b.W, b.M, b.x, b.d, torch.zeros_like(b.valid))
+    dead = Reservoirs(b.light, b.omega, b.W, b.M, b.x, b.d, b.mis, torch.zeros_like(b.valid))
     same, sel = rr.combine([a, dead], lights, torch.rand(rec.n, generator=gen))
     assert bool((sel == 0).all())
     torch.testing.assert_close(same.W, a.W, rtol=1e-5, atol=0)
@@ -76,9 +76,9 @@ def test_merge_keeps_the_confidence_sum_and_the_contribution_weight():
     torch.testing.assert_close(both.M[v], a.M[v] + b.M[v])
     picked = torch.where(sel == 0, a.light, b.light)
     assert torch.equal(both.light, picked)
-    ph = [rr.target(lights, r.light, r.omega, r.x, r.d) for r in (a, b)]  # own targets
-    cross = [rr.target(lights, r.light, r.omega, o.x, o.d) for r, o in ((a, b), (b, a))]
-    p0 = [ph[0], rr.target(lights, b.light, b.omega, a.x, a.d)]  # at the receiver (a's vertices)
+    ph = [rr.target(lights, r.light, r.omega, r.x, r.d, r.mis) for r in (a, b)]  # own targets
+    cross = [rr.target(lights, r.light, r.omega, o.x, o.d, o.mis) for r, o in ((a, b), (b, a))]
+    p0 = [ph[0], rr.target(lights, b.light, b.omega, a.x, a.d, a.mis)]  # at the receiver (a's vertices)
     w = [a.M * ph[0] / (a.M * ph[0] + b.M * cross[0]) * p0[0] * a.W,
          b.M * ph[1] / (b.M * ph[1] + a.M * cross[1]) * p0[1] * b.W]
     total = (w[0] + w[1])[v]
