@@ -226,3 +226,14 @@ def test_nrc_with_reuse_logs_its_counters_and_resumes_exactly(tmp_path):
                                           f"renderer.resume={tmp_path / 'at3.pt'}"]))
     rest = resumed.render()
     np.testing.assert_allclose(rest.image, result.image, rtol=1e-5, atol=1e-6)
+
+
+def test_reuse_with_no_light_left_to_sample_adds_nothing_and_runs():
+    """Every light equi-angular (one point light): the reuse pass has no light to sample; the image is the
+    equi-angular one, finite and lit."""
+    cfg = compose([*TINY, "scene=point", "scene.volume.density_scale=0.05", "renderer.point_light_sampling=equiangular",
+                   "renderer.reuse.mode=spatial",
+                   "scene.integrator.spp=2"])
+    res = PathTracer(load_scene(cfg.scene), cfg).render()
+    assert np.isfinite(res.image).all() and res.image.mean() > 0
+    assert res.metrics["nee_lights"] == 0 and res.metrics["reuse_vertices"] > 0

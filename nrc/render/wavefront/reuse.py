@@ -375,6 +375,9 @@ class ReservoirReuse:
         ``spatiotemporal`` the frame's final reservoirs become the next frame's history."""
         t0 = time.perf_counter()
         mode = self.settings.mode
+        if lights.n_lights == 0:  # nothing to sample (every light equi-angular, or none)
+            return torch.zeros(rec.n, 3, device=rec.x.device), {"reuse_vertices": int(rec.valid.sum()),
+                                                                 "time_reuse_s": time.perf_counter() - t0}
         cur = self.initial(rec, lights, gen)
         n_valid = max(int(rec.valid.sum()), 1)
         stats: dict[str, Any] = {"reuse_vertices": int(rec.valid.sum())}
