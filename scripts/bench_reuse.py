@@ -153,18 +153,16 @@ def markdown(results: list[dict], meta: dict) -> str:
     for r in results:
         for mode, row in r["modes"].items():
             g1 = row.get("gain_raw_equal_time")
-            g2 = row.get("gain_oidn_equal_time")
-            label = f"{r['scene']} ({r.get('renderer', 'pt')})"
-            if r.get("renderer") == "nrc" and row.get("gain_oidn_per_frame"):
-                g2, row = None, {**row, "equal_time_spp_none": 1}
-                g2_text = f"{row['gain_oidn_per_frame']:.2f}x per frame"
+            if "gain_oidn_per_frame" in row:  # nrc: no equal-time none render
+                g2 = f"{row['gain_oidn_per_frame']:.2f}x per frame"
+            elif "gain_oidn_equal_time" in row:
+                g2 = f"{row['gain_oidn_equal_time']:.2f}x (none at {row['equal_time_spp_none']} spp)"
             else:
-                g2_text = None
-            lines.append(f"| {label} | {mode} | {row['seconds_per_frame']:.3f} | {row['rel_mse']:.4g} | "
-                         f"{row['mean_ratio']:.4f} | {row['flip']:.4f} | {row['rel_mse_oidn']:.4g} | "
-                         f"{row['mean_ratio_oidn']:.4f} | {row['flip_oidn']:.4f} | "
-                         f"{'-' if g1 is None else f'{g1:.2f}x'} | "
-                         f"{g2_text or ('-' if g2 is None else f'{g2:.2f}x (none at ' + str(row['equal_time_spp_none']) + ' spp)')} |")
+                g2 = "-"
+            lines.append(f"| {r['scene']} ({r.get('renderer', 'pt')}) | {mode} | {row['seconds_per_frame']:.3f} | "
+                         f"{row['rel_mse']:.4g} | {row['mean_ratio']:.4f} | {row['flip']:.4f} | "
+                         f"{row['rel_mse_oidn']:.4g} | {row['mean_ratio_oidn']:.4f} | {row['flip_oidn']:.4f} | "
+                         f"{'-' if g1 is None else f'{g1:.2f}x'} | {g2} |")
     return "\n".join(lines) + "\n"
 
 
@@ -182,7 +180,6 @@ def main() -> int:
     ap.add_argument("--nrc-warmup", type=int, default=8)
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    torch.set_num_threads(torch.get_num_threads())
 
     def log(msg: str) -> None:
         print(msg, flush=True)

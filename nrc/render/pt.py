@@ -154,14 +154,12 @@ class PathTracer:
         machine, backend, reason = self.core.choose(total)
         image = torch.zeros(cam.num_pixels, 3, device=self.device)
         gen = torch.Generator(device=self.device).manual_seed(self.scene.integrator.seed)
-        wf = Wavefront(machine, self.core.inputs, self.lights, self.slots,
-                       self.core.shadow_queue(machine, self.shadow_batch, gen), None,
-                       self.core.equiangular_queue(self.shadow_batch, gen))
         bar = tqdm(total=total, unit="sample", unit_scale=True, disable=not progress, desc="pt", leave=False,
                    mininterval=1.0)
         start = time.perf_counter()
         reuse_stats: dict[str, list] = {}
         if self.settings.reuse.mode == "none":
+            wf = self._wavefront(machine, gen)
             wf.run(total, self._camera_paths, image, on_done=bar.update)
         else:
             wf = self._render_passes(machine, gen, image, bar, on_pass, reuse_stats)
@@ -196,6 +194,13 @@ class PathTracer:
         }
         return RenderResult(image=img.cpu().numpy(), metrics=metrics)
 
+    def _wavefront(self, machine: Any, gen: torch.Generator, record: VertexRecord | None = None) -> Wavefront:
+        """A wavefront of the core's machine with its shadow and equi-angular queues (drawing from ``gen``);
+        ``record``: the reuse vertices are recorded into it."""
+        return Wavefront(machine, self.core.inputs, self.lights, self.slots,
+                         self.core.shadow_queue(machine, self.shadow_batch, gen), None,
+                         self.core.equiangular_queue(self.shadow_batch, gen), reuse=record)
+
     def _render_passes(self, machine: Any, gen: torch.Generator, image: torch.Tensor, bar: Any, on_pass: Any,
                        stats: dict[str, list]) -> Wavefront:
         """The ``spp`` one-sample passes of a render with reuse (module docstring); returns the last pass's
@@ -208,9 +213,7 @@ class PathTracer:
         wf = None
         for j in range(spp):
             rec = VertexRecord.empty(n, st.reuse.vertex(self.scene.g), self.scene.albedo, False, self.device)
-            wf = Wavefront(machine, self.core.inputs, self.lights, self.slots,
-                           self.core.shadow_queue(machine, self.shadow_batch, gen), None,
-                           self.core.equiangular_queue(self.shadow_batch, gen), reuse=rec)
+            wf = self._wavefront(machine, gen, rec)
             one = torch.zeros_like(image)
             wf.run(n, lambda r, j=j: self._camera_paths(r * spp + j), one, on_done=bar.update)
             contribution, s = reuse.frame(rec, cam, self.lights, self.transmittance, self.scene.grid,

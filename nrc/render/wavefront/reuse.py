@@ -224,6 +224,7 @@ def _choose(ws: list[Tensor], u: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _gather(values: list[Tensor], sel: Tensor) -> Tensor:
+    """``values[sel[n]][n]`` for each row ``n`` (``(N,)`` or ``(N, 3)`` values)."""
     return torch.stack(values, 1)[torch.arange(len(sel), device=sel.device), sel]
 
 
@@ -247,12 +248,19 @@ class ReservoirReuse:
     def target(self, lights: LightSampler, light: Tensor, omega: Tensor, x: Tensor, d: Tensor,
                mis: Tensor) -> Tensor:
         """``p_hat`` ``(N,)`` of samples ``(light, omega)`` at vertices ``(x, d, mis)``."""
+        p, _ = self._target(lights, light, omega, x, d, mis)
+        return p
+
+    def _target(self, lights: LightSampler, light: Tensor, omega: Tensor, x: Tensor, d: Tensor,
+                mis: Tensor) -> tuple[Tensor, Tensor]:
+        """``(p_hat, p_hat / luminance(contribution))``: the target and its factor besides the light (phase x
+        MIS x the coarse transmittance)."""
         wi, dist, c, p_src = lights.evaluate(light, omega, x)
         phase = hg_pdf(self.g, (d * wi).sum(-1))
-        p = luminance3(c.unbind(1)) * phase * self._mis(lights, light, p_src, phase, mis)
+        factor = phase * self._mis(lights, light, p_src, phase, mis)
         if self.coarse is not None:
-            p = p * self.coarse(x, wi, torch.minimum(self.grid.box.intersect(x, wi)[1], dist))
-        return p
+            factor = factor * self.coarse(x, wi, torch.minimum(self.grid.box.intersect(x, wi)[1], dist))
+        return luminance3(c.unbind(1)) * factor, factor
 
     @staticmethod
     def _mis(lights: LightSampler, light: Tensor, p_src: Tensor, phase: Tensor, mis: Tensor) -> Tensor | float:
@@ -270,21 +278,16 @@ class ReservoirReuse:
         n, dev = rec.n, rec.x.device
         m = lights.candidates
         u = torch.rand(n, 4 * m + 1, generator=gen, device=dev)
-        ws, ks, om = [], [], []
+        ws, ps, ks, om = [], [], [], []
         for j in range(m):
             ls = lights.sample(rec.x, u[:, 4 * j:4 * j + 4])
-            phase = hg_pdf(self.g, (rec.d * ls.wi).sum(-1))
-            p_src = lights.evaluate(ls.light, ls.wi, rec.x)[3]
-            w = luminance3(ls.weight.unbind(1)) * phase * self._mis(lights, ls.light, p_src, phase, rec.mis)
-            if self.coarse is not None:
-                w = w * self.coarse(rec.x, ls.wi, torch.minimum(self.grid.box.intersect(rec.x, ls.wi)[1], ls.distance))
-            ws.append(w)
+            p, factor = self._target(lights, ls.light, ls.wi, rec.x, rec.d, rec.mis)
+            ws.append(luminance3(ls.weight.unbind(1)) * factor)  # p_hat / p_src, p_src the pdf it was drawn with
+            ps.append(p)
             ks.append(ls.light)
             om.append(ls.wi)
         sel, total = _choose(ws, u[:, 4 * m])
-        light = _gather(ks, sel)
-        omega = torch.stack(om, 1)[torch.arange(n, device=dev), sel]
-        ph = self.target(lights, light, omega, rec.x, rec.d, rec.mis)
+        light, omega, ph = _gather(ks, sel), _gather(om, sel), _gather(ps, sel)
         ok = rec.valid & (total > 0) & (ph > 0)
         W = torch.where(ok, total / (m * ph).clamp(min=1e-30), torch.zeros_like(total))
         M = torch.where(rec.valid, torch.full_like(total, float(m)), torch.zeros_like(total))
@@ -302,8 +305,7 @@ class ReservoirReuse:
             m_i = torch.where(den > 0, Ms[i] * ph[i][i] / den.clamp(min=1e-30), torch.zeros_like(den))
             ws.append(m_i * ph[i][0] * ri.W)
         sel, total = _choose(ws, u)
-        light = _gather([r.light for r in inputs], sel)
-        omega = torch.stack([r.omega for r in inputs], 1)[torch.arange(len(sel), device=sel.device), sel]
+        light, omega = _gather([r.light for r in inputs], sel), _gather([r.omega for r in inputs], sel)
         p0 = _gather([ph[i][0] for i in range(len(inputs))], sel)
         ok = rx.valid & (total > 0) & (p0 > 0)
         W = torch.where(ok, total / p0.clamp(min=1e-30), torch.zeros_like(total))
@@ -311,8 +313,7 @@ class ReservoirReuse:
         return Reservoirs(light, omega, W, M, rx.x, rx.d, rx.mis, rx.valid), sel
 
     # ------------------------------------------------------------------ reuse
-    def temporal(self, cur: Reservoirs, camera: Any, lights: LightSampler, gen: torch.Generator,
-                 candidates: int) -> tuple[Reservoirs, Tensor, Tensor]:
+    def temporal(self, cur: Reservoirs, lights: LightSampler, gen: torch.Generator) -> tuple[Reservoirs, Tensor, Tensor]:
         """Combine with the previous frame's reservoir of the pixel the vertex projects to (step 2); returns
         the new reservoirs, the mask of vertices that found a history and the kept input's index."""
         n, dev = len(cur.W), cur.W.device
@@ -320,7 +321,7 @@ class ReservoirReuse:
         slot = pix * self.spp + torch.arange(n, device=dev) % self.spp
         prev = self.prev.take(slot)
         prev.valid = prev.valid & inside & cur.valid
-        prev.M = torch.minimum(prev.M, torch.full_like(prev.M, self.settings.history * candidates))
+        prev.M = torch.minimum(prev.M, torch.full_like(prev.M, self.settings.history * lights.candidates))
         out, sel = self.combine([cur, prev], lights, torch.rand(n, generator=gen, device=dev))
         return out, prev.valid, sel
 
@@ -382,7 +383,7 @@ class ReservoirReuse:
         n_valid = max(int(rec.valid.sum()), 1)
         stats: dict[str, Any] = {"reuse_vertices": int(rec.valid.sum())}
         if mode == "spatiotemporal" and self.prev is not None and len(self.prev.W) == rec.n:
-            cur, hist, sel = self.temporal(cur, camera, lights, gen, lights.candidates)
+            cur, hist, sel = self.temporal(cur, lights, gen)
             stats["reuse_temporal_found"] = int(hist.sum()) / n_valid
             stats["reuse_temporal_accept"] = int((hist & (sel == 1)).sum()) / n_valid
         cur, sel = self.spatial(cur, camera, lights, gen)
