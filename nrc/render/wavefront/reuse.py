@@ -24,7 +24,7 @@ meaning (and its measure) at another vertex: no Jacobian. The target at vertex `
 incoming direction ``d_i``) is ``p_hat_i(y) = luminance(unshadowed light at x_i) x HG(d_i . wi) x mis_i(y)``,
 ``mis_i`` the power-heuristic weight of light sampling against phase sampling of the environment (1 for delta
 lights; the target follows the MIS-weighted integrand, or the resampling would favour the sky directions in the
-phase lobe that phase sampling covers, and the estimate would turn heavy-tailed), times the ``coarse``
+phase lobe that phase sampling covers), times the ``coarse``
 transmittance with ``target=coarse``.
 
 **Unbiased combination** (generalized RIS, Lin et al. 2022): inputs ``i = 0..K`` (0 the receiver) with samples
@@ -265,9 +265,8 @@ class ReservoirReuse:
     @staticmethod
     def _mis(lights: LightSampler, light: Tensor, p_src: Tensor, phase: Tensor, mis: Tensor) -> Tensor | float:
         """The light-sampling MIS weight against phase sampling of the environment (1 for the delta lights and
-        where the path does not go on): part of the integrand, so part of the target too -- without it the
-        resampling favours sky directions in the phase lobe, which phase sampling covers, and the estimate
-        turns heavy-tailed."""
+        where the path does not go on): part of the integrand, so part of the target too (without it the
+        resampling would favour sky directions in the phase lobe, which phase sampling covers)."""
         if not lights.has_env:
             return 1.0
         env = (light >= lights.env_index) & mis
