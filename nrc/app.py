@@ -67,7 +67,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
-    from nrc.denoise import denoise, denoiser_from_config, oidn_version
+    from nrc.denoise import clamp_bias, denoise, denoiser_from_config, oidn_version
 
     display = DisplaySettings.from_config(cfg)
     denoiser = denoiser_from_config(cfg)
@@ -107,6 +107,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
         denoised = denoise(image)
         metrics["time_denoise_s"] = time.perf_counter() - t0
         metrics["denoise"] = oidn_version()
+        metrics["denoise_clamp_bias"] = clamp_bias(image)  # what cleaning negative pixels adds to the mean
         outputs["image_denoised.exr"] = ("the denoised image", denoised, {**attrs, "denoiser": metrics["denoise"]})
         outputs["preview_denoised.png"] = ("the denoised preview", denoised, None)
     _write("the run directory", out_dir, lambda: out_dir.mkdir(parents=True, exist_ok=True))

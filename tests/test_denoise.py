@@ -62,3 +62,14 @@ def test_app_writes_the_denoised_image_beside_the_raw_one(tmp_path):
     assert (tmp_path / "preview_denoised.png").is_file()
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["time_denoise_s"] > 0 and metrics["denoise"].startswith("pyoidn")
+
+
+def test_clamp_bias_measures_what_cleaning_negative_pixels_adds():
+    from nrc.denoise import clamp_bias
+
+    img = np.full((4, 4, 3), 1.0, np.float32)
+    assert clamp_bias(img) == 0.0
+    img[0, 0] = -2.0  # raw mean (15 - 2) / 16, clean mean 15 / 16
+    assert clamp_bias(img) == pytest.approx((15 / 16 - 13 / 16) / (13 / 16))
+    img[1, 1] = np.nan  # non-finite values count as 0 on both sides
+    assert clamp_bias(img) == pytest.approx((14 / 16 - 12 / 16) / (12 / 16))

@@ -346,6 +346,9 @@ SPEED_RUNS = [("side-lit Disney cloud (sun + sky, g 0.5), 480 x 270", "oidn_480x
               ("point light below the Disney cloud (g -0.3), 160 x 90", "oidn_160x90_point_below"),
               ("side-lit Disney cloud, 160 x 90, accumulated frames with a static camera",
                "oidn_160x90_side_lit_accumulate"),
+              ("unbiased NRC (renderer.debias, q = 0.1, 0.25, 0.5) against the biased NRC and the path tracer: the "
+               "side-lit Disney cloud, 160 x 90, accumulated 4-spp frames with a static camera",
+               "debias_160x90_side_lit_accumulate"),
               ("light selection uniform against power: the side-lit Disney cloud, 160 x 90",
                "light_selection_160x90_side_lit"),
               ("light selection uniform against power: a point light below the Disney cloud with a dim sun and sky, "

@@ -18,8 +18,9 @@ Two modes (``--mode single|accumulate|both``):
   eager and compiled backends: the best relMSE reachable within a time) interpolated (log-log) at the same time per frame (extrapolated with slope -1,
   relMSE ~ 1/spp, beyond the slowest point; flat, the fastest frame's error, before the fastest point).
 * **accumulate** (static camera; the ``--acc-configs``). ``pt`` accumulates ``--acc-pt-spp``-spp frames,
-  NRC accumulates its 1-spp frames (``renderer.accumulate=true``, training continues, counted from a
-  cold cache); the error of the
+  NRC accumulates its ``--acc-nrc-spp``-spp frames (default 1; ``renderer.accumulate=true``, training
+  continues, counted from a cold cache, after an untimed 16 x 9 warm-up frame like ``pt``'s, whose wall time
+  -- the compile or its load from the cache -- is the rows' ``startup_s``); the error of the
   running mean is recorded at 1, 2, 4, ... frames until ``--acc-budget-s`` seconds of rendering (per
   configuration and repeat). ``--acc-repeats`` independent sequences give bias and variance. The
   crossover is the first time after which the unbiased ``pt`` is more accurate than NRC.
@@ -114,7 +115,7 @@ SEED_BASE = 1000  # seeds of the scored renders; references use seeds >= 1e6 (nr
 FIELDS = [
     "mode", "config", "renderer", "spp", "frames", "time_s", "cpu_s", "rel_mse", "rel_mse_medium", "rel_mse_corr",
     "rel_mse_medium_corr", "bias", "bias_medium", "mean_ratio", "mean_ratio_medium", "rel_mse_norm",
-    "rel_mse_norm_medium", "flip", "denoised",
+    "rel_mse_norm_medium", "flip", "denoised", "clamp_bias",
     "variance", "variance_medium", "mse", "mse_medium", "renders", "rel_mse_floor", "rel_mse_floor_medium",
 ]
 
@@ -212,6 +213,15 @@ def nrc_run(scene, cfg, spp: int, seed: int, frames: int, accumulate: bool,
     NRCRenderer(with_spp_seed(scene, spp, seed), cfg).render(progress=False, on_frame=on_frame)
 
 
+def nrc_warmup(scene, cfg) -> float:
+    """One untimed 16 x 9, 1-frame NRC run (as :func:`pt_warmup`): the compile, or its load from the persistent
+    cache, happens here, not in the first scored frame; returns its wall time (reported as ``startup_s``)."""
+    small = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=16, height=9))
+    t0 = time.perf_counter()
+    nrc_run(small, cfg.copy(), 1, SEED_BASE - 1, 1, False, lambda *a: None)
+    return time.perf_counter() - t0
+
+
 # ---------------------------------------------------------------------------- modes
 def run_single(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
     rows = []
@@ -260,7 +270,7 @@ DENOISED = "+oidn"  # suffix of a configuration's denoised twin
 def denoised_row(row: dict[str, Any], frames: list[np.ndarray], scorer: Scorer) -> dict[str, Any]:
     """The twin of a single-frame row with every frame denoised by OIDN; the denoise time (median over the
     frames, measured now) is added to its time per frame."""
-    from nrc.denoise import denoise
+    from nrc.denoise import clamp_bias, denoise
 
     out, times, cpu = [], [], []
     for f in frames:
@@ -272,6 +282,7 @@ def denoised_row(row: dict[str, Any], frames: list[np.ndarray], scorer: Scorer) 
     twin["time_s"] = row["time_s"] + float(np.median(times))
     twin["cpu_s"] = None if row.get("cpu_s") is None else row["cpu_s"] + float(np.median(cpu))
     twin["time_denoise_s"] = float(np.median(times))
+    twin["clamp_bias"] = float(np.mean([clamp_bias(f) for f in frames]))  # the denoiser's copy drops negatives
     return twin
 
 
@@ -336,6 +347,8 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
                 if t_cum > args.acc_budget_s:
                     break
         else:
+            if rep == 0:
+                startup = nrc_warmup(scene, cfg)
             state = {"t": 0.0}
 
             class Stop(Exception):
@@ -349,16 +362,18 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
                     raise Stop
 
             try:
-                nrc_run(scene, cfg, 1, SEED_BASE + 20_000 * (rep + 1), args.acc_max_frames, True, cb)
+                nrc_run(scene, cfg, args.acc_nrc_spp, SEED_BASE + 20_000 * (rep + 1), args.acc_max_frames, True, cb)
             except Stop:
                 pass
         seqs.append(rec)
     rows = []
     common = sorted(set.intersection(*(set(r) for r in seqs)))
     for n in common:
-        spp = args.acc_pt_spp if cfg.renderer.name == "pt" else 1
+        spp = args.acc_pt_spp if cfg.renderer.name == "pt" else args.acc_nrc_spp
         row = {"mode": "accumulate", "config": name, "renderer": cfg.renderer.name, "spp": spp, "frames": n,
                "time_s": float(np.mean([r[n][0] for r in seqs])), **scorer.score([r[n][1] for r in seqs])}
+        if cfg.renderer.name != "pt":
+            row["startup_s"] = startup  # the untimed warm-up (compile or cache load, 16 x 9)
         rows.append(row)
         log(row)
         if args.denoise:  # the running mean denoised at this point (its time + one denoise)
@@ -426,6 +441,17 @@ def baseline_names(baseline: str | list[str] | None) -> list[str]:
     return [] if baseline is None else [baseline] if isinstance(baseline, str) else list(baseline)
 
 
+def baseline_error(points: list[tuple[float, float]], t: float) -> float:
+    """The best error the baseline's measured ``(time, error)`` points reach at time ``t``: on their Pareto front
+    (log-log); between the front's slowest point and the slowest measured point the front is flat (spending that
+    time was measured not to help, e.g. a denoised path tracer that is no better at 16 spp than at 4); beyond every
+    measured point it is extrapolated (:func:`loglog_interp`)."""
+    front = pareto(points)
+    if front[-1][0] < t <= max(p[0] for p in points):
+        return front[-1][1]
+    return loglog_interp(t, [f[0] for f in front], [f[1] for f in front])
+
+
 def equal_time_ratios(rows: list[dict[str, Any]], baseline: str | list[str], clock: str = "time_s") -> list[dict[str, Any]]:
     """NRC single-frame points against the baseline path tracers at the same time per frame: the Pareto front of
     all their points (the best path-tracer error measured at that time, whichever configuration reached it).
@@ -450,17 +476,10 @@ def equal_time_ratios(rows: list[dict[str, Any]], baseline: str | list[str], clo
         for key in ("rel_mse", "rel_mse_medium", "rel_mse_corr", "rel_mse_medium_corr"):
             if r.get(key) is None or any(b.get(key) is None or b[key] <= 0 for b in base) or r[key] <= 0:
                 continue
-            front = pareto([(b["time_s"], b[key]) for b in base])
-            slowest = max(b["time_s"] for b in base)
-            if front[-1][0] < r["time_s"] <= slowest:
-                # more time was measured and did not help (the slower points are off the front, e.g. a denoised
-                # path tracer that is no better at 16 spp than at 4): the best reachable error stays flat
-                pt_e = front[-1][1]
-            else:
-                pt_e = loglog_interp(r["time_s"], [f[0] for f in front], [f[1] for f in front])
+            pt_e = baseline_error([(b["time_s"], b[key]) for b in base], r["time_s"])
             item[f"pt_{key}"] = pt_e
             item[f"ratio_{key}"] = r[key] / pt_e
-            item["extrapolated"] = not (front[0][0] <= r["time_s"] <= slowest)
+            item["extrapolated"] = not (min(b["time_s"] for b in base) <= r["time_s"] <= max(b["time_s"] for b in base))
         out.append(item)
     return out
 
@@ -669,6 +688,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--acc-repeats", type=int, default=2, help="independent sequences (accumulate mode)")
     p.add_argument("--acc-pt-spp", type=int, default=4,
                    help="spp per accumulated pt frame (a wavefront frame costs about the same at 1-4 spp)")
+    p.add_argument("--acc-nrc-spp", type=int, default=1, help="NRC spp per accumulated frame (accumulate mode)")
     p.add_argument("--acc-configs", default="pt,nrc_hashgrid",
                    help="configurations also run in accumulate mode (comma-separated; 'all' for every one)")
     p.add_argument("--nrc-overrides", default=",".join(NRC_DEFAULTS),

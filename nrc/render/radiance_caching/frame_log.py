@@ -2,7 +2,8 @@
 
 TensorBoard tags: ``loss/step`` (every training step), ``loss/frame`` (mean per frame), ``time/<stage>``
 for ``trace`` (with its parts ``free_flight`` and ``shadow``), ``infer``, ``train`` and ``frame``
-(seconds), ``error/rel_mse`` and ``error/mse`` when a reference is given, and ``image/frame`` /
+(seconds), ``error/rel_mse`` and ``error/mse`` when a reference is given, and ``debias/<counter>`` with ``renderer.debias`` (``debias.py``), ``reuse/<counter>`` with ``renderer.reuse``,
+``light/<counter>`` (the light sampling), ``image/frame`` /
 ``image/output`` (tone-mapped) every ``image_every`` frames, each with one exposure for the whole run (with
 ``exposure: auto``, the exposure of its first logged image) so the images show the convergence.
 """
@@ -58,6 +59,8 @@ class FrameLog:
                 self.writer.add_scalar(f"light/{key}", value, frame)
             elif key.startswith("reuse_") and value is not None:  # reservoir reuse counters (wavefront/reuse.py)
                 self.writer.add_scalar(f"reuse/{key[6:]}", value, frame)
+            elif key.startswith("debias_") and value is not None:  # the control variate (debias.py)
+                self.writer.add_scalar(f"debias/{key[7:]}", value, frame)
         if (self.image_every and frame % self.image_every == 0) or force_images:
             for name, img in images.items():
                 if name not in self.exposure:

@@ -38,10 +38,16 @@ every later vertex beyond ``V``, which all add into ``acc_V``), the next-event e
 MIS-weighted environment reached by the direction sampled at ``j``, and the cache value at the terminal
 vertex if it follows ``j``. Everything is float32.
 
+With ``renderer.debias`` (:mod:`nrc.render.radiance_caching.debias`) a render path that would terminate goes on
+with probability ``q`` as a path-traced suffix (throughput ``beta / q``) and its cache query gets the weight
+``beta (1 - 1/q)``: the cache is a control variate and the image is unbiased.
+
 Contributions land in one accumulator ``acc`` of ``P + N_train x V + 1`` rows: rows ``[0, P)`` are image
 pixels (sums over the ``spp`` samples), then ``V`` rows per training path, then one discard row for
-training paths that have not scattered yet. Cache queries are returned (not evaluated) so the caller
-can batch and filter them.
+training paths that have not scattered yet; with ``cache_target=indirect`` then ``N_train x V`` rows of the
+records' own direct light; with ``renderer.debias`` then one suffix row per render sample (zero unless the
+sample was continued; the caller adds them to the pixels). Cache queries are returned (not evaluated) so the
+caller can batch and filter them.
 """
 
 from __future__ import annotations
@@ -116,6 +122,13 @@ class FrameTrace:
     timers: dict[str, float] = field(default_factory=dict)
     direct: Tensor | None = None  # cache_target=indirect: (N_train * V, 3) each record's direct light
     reuse: Any = None  # the render paths' reuse vertices (reuse.VertexRecord; None without reuse)
+    # renderer.debias: (n_render, 3) each render sample's suffix row (a view of acc; zero where not continued),
+    # query_cont (Q,) the queries of continued paths, whose (sample id, throughput at the vertex) are cont_pid,
+    # cont_beta in the same order
+    suffix: Tensor | None = None
+    query_cont: Tensor | None = None
+    cont_pid: Tensor | None = None
+    cont_beta: Tensor | None = None
 
 
 class NRCPathTracer:
@@ -136,7 +149,8 @@ class NRCPathTracer:
                  extra_vertices: int, slots: int, shadow_batch: int, brick: object = "auto",
                  free_flight: str = "brick", backend: str = "eager", steps_per_call: int = 1,
                  compile_min_samples: int = 0, cache_target: str = "full",
-                 light_sampling: LightSamplingSettings = LightSamplingSettings(), reuse_vertex: int = 0) -> None:
+                 light_sampling: LightSamplingSettings = LightSamplingSettings(), reuse_vertex: int = 0,
+                 debias: bool = False) -> None:
         self.scene = scene
         self.device = scene.device
         self.transmittance = transmittance
@@ -148,6 +162,7 @@ class NRCPathTracer:
         self.cache_target = cache_target
         self.light_sampling = light_sampling
         self.reuse_vertex = reuse_vertex  # render paths' vertex recorded for reservoir reuse (0: none)
+        self.debias = debias  # renderer.debias: render paths may go on past their cache termination (q per frame)
         self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples)
         self._cores: dict = {}
         self.core = self._core(RandomSource.counter_uniforms)
@@ -160,7 +175,7 @@ class NRCPathTracer:
             s = self.scene
             self._cores[uniforms] = build_core(
                 s.grid, self.light_sampling.sampler(s), s.albedo, s.g, s.integrator.max_scatter,
-                self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V, self.cache_target),
+                self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V, self.cache_target, self.debias),
                 termination=self.termination, uniforms=uniforms, inline_shadows=False,
                 point_lights=self.light_sampling.equiangular_points(s), reuse_vertex=self.reuse_vertex)
             self._cores[uniforms].warm_fraction = 1 / 12  # see Core.warm_fraction
@@ -194,8 +209,10 @@ class NRCPathTracer:
         return F, I
 
     # ------------------------------------------------------------------ main loop
-    def trace(self, ps: PathSet, lights: LightSampler, rng: RandomSource) -> FrameTrace:
-        """Trace every path of ``ps``; NEE lands in ``acc``, cache terminations are returned as queries."""
+    def trace(self, ps: PathSet, lights: LightSampler, rng: RandomSource, debias_q: float = 0.0) -> FrameTrace:
+        """Trace every path of ``ps``; NEE lands in ``acc``, cache terminations are returned as queries
+        (``debias_q``: the probability that a render path goes on past its cache termination, with
+        ``renderer.debias``; in ``(0, 1]``)."""
         dev, V = self.device, self.V
         core = self._core(rng.counter_uniforms)
         n_pixels = ps.camera.num_pixels
@@ -203,16 +220,22 @@ class NRCPathTracer:
         discard = n_pixels + ps.n_train * V
         indirect = self.cache_target == "indirect"
         n_rows = discard + 1 + (ps.n_train * V if indirect else 0)
+        suffix_base = n_rows if self.debias else None
+        if self.debias:
+            if not 0.0 < debias_q <= 1.0:
+                raise ValueError(f"debias_q must be in (0, 1], got {debias_q}")
+            n_rows += ps.n_render
         acc = torch.zeros(n_rows, 3, device=dev)
         machine, self.backend, self.backend_reason = core.choose(total * self.frames)
         hv = Harvest(n_pixels, ps.n_render, torch.zeros(ps.n_train * V, 3, device=dev),
                      torch.zeros(ps.n_train * V, 3, device=dev),
                      torch.zeros(ps.n_train * V, dtype=torch.bool, device=dev),
-                     torch.zeros(ps.n_train, dtype=torch.bool, device=dev), discard + 1 if indirect else None)
+                     torch.zeros(ps.n_train, dtype=torch.bool, device=dev), discard + 1 if indirect else None,
+                     debias_q=debias_q if self.debias else 0.0, suffix_base=suffix_base, debias_indirect=indirect)
         shadow = core.shadow_queue(machine, self.shadow_batch, rng.generator)
-        rec = VertexRecord.empty(ps.n_render, self.reuse_vertex, self.scene.albedo, indirect, dev) \
-            if self.reuse_vertex else None
-        wf = Wavefront(machine, core.inputs_for(lights), lights, self.slots, shadow, hv,
+        rec = VertexRecord.empty(ps.n_render, self.reuse_vertex, self.scene.albedo, indirect, dev,
+                                 debias_q if self.debias else 0.0) if self.reuse_vertex else None
+        wf = Wavefront(machine, core.inputs_for(lights, debias_q), lights, self.slots, shadow, hv,
                        core.equiangular_queue(self.shadow_batch, rng.generator), reuse=rec)
         layout = machine.step.layout
         wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, discard), acc)
@@ -225,11 +248,18 @@ class NRCPathTracer:
             return torch.cat(q) if q else torch.zeros(shape, dtype=dtype, device=dev)
 
         counts["cache_queries"] = sum(len(v) for v in hv.queries["pid"])
+        debias = {}
+        if self.debias:
+            debias = dict(suffix=acc[suffix_base:], query_cont=cat("cont", (0,), torch.bool),
+                          cont_pid=torch.cat(hv.continued["pid"]) if hv.continued["pid"] else
+                          torch.zeros(0, dtype=torch.long, device=dev),
+                          cont_beta=torch.cat(hv.continued["beta"]) if hv.continued["beta"] else
+                          torch.zeros(0, 3, device=dev))
         return FrameTrace(
             acc=acc, n_pixels=n_pixels,
             query_x=cat("x", (0, 3), torch.float32), query_d=cat("d", (0, 3), torch.float32),
             query_w=cat("w", (0, 3), torch.float32), query_dest=cat("dest", (0,), torch.long),
             query_pid=cat("pid", (0,), torch.long), rec_x=hv.rec_x, rec_d=hv.rec_d, rec_valid=hv.rec_valid,
             scattered=hv.scattered, counts=counts, timers=timers,
-            direct=acc[discard + 1:] if indirect else None, reuse=rec,
+            direct=acc[discard + 1:discard + 1 + ps.n_train * V] if indirect else None, reuse=rec, **debias,
         )

@@ -48,6 +48,7 @@ from tqdm import tqdm
 from nrc.cache.radiance_cache import build_radiance_cache
 from nrc.errors import ConfigError, NRCError
 from nrc.io.png import DisplaySettings
+from nrc.render.radiance_caching import debias
 from nrc.render.radiance_caching.batch_filter import make_batch_filter
 from nrc.render.radiance_caching.checkpoint import (CheckpointError, check_config, load_checkpoint, plain,
                                                     save_checkpoint)
@@ -158,7 +159,7 @@ class NRCRenderer:
         self.tracer = NRCPathTracer(scene, self.transmittance, st.termination, tr.records_per_path,
                                     tr.extra_vertices, st.slots, st.shadow_batch, st.brick, st.free_flight,
                                     st.backend, st.steps_per_call, st.compile_min_samples, st.cache_target,
-                                    st.light_sampling, st.reuse.vertex(scene.g))
+                                    st.light_sampling, st.reuse.vertex(scene.g), st.debias.enabled)
         self.reuse = ReservoirReuse(st.reuse, scene.g, scene.integrator.spp, scene.grid) \
             if st.reuse.mode != "none" else None
         self.tracer.frames = self.frames
@@ -224,7 +225,8 @@ class NRCRenderer:
         unbiased = rng.rand(tr.n_paths, 1)[:, 0] < tr.unbiased_fraction
         ps = PathSet(camera, scene.integrator.spp, train_xy, unbiased)
         lights = self.frame_lights(frame)
-        trace = self.tracer.trace(ps, lights, rng)
+        q = st.debias.probability
+        trace = self.tracer.trace(ps, lights, rng, q)
         reuse_stats: dict[str, Any] = {}
         if self.reuse is not None:  # the render paths' first-vertex direct light, by reservoir reuse
             contribution, reuse_stats = self.reuse.frame(trace.reuse, camera, lights, self.transmittance,
@@ -245,12 +247,17 @@ class NRCRenderer:
         values = torch.nan_to_num(values, nan=0.0, posinf=0.0).clamp(min=0.0)
         acc = trace.acc
         acc.index_add_(0, trace.query_dest, trace.query_w * values)
+        debias_stats: dict[str, Any] = {}
+        if st.debias.enabled:  # the continued paths' suffixes: the cache as a control variate (debias.py)
+            debias_stats = debias.apply(trace, values, ps.spp, q)
         n_pix = trace.n_pixels
         image = (acc[:n_pix] / ps.spp).reshape(camera.height, camera.width, 3)
         if not bool(torch.isfinite(image).all()):
             bad = int((~torch.isfinite(image)).any(dim=-1).sum())
             raise NRCError(f"frame {frame}: {bad} pixels of the NRC image are NaN/Inf (the path tracing part "
                            "diverged; the image is not written)")
+        if st.debias.enabled:  # unbiased frames can have negative pixels; they are kept (counted here)
+            debias_stats["debias_negative_pixels"] = int((image < 0).any(dim=-1).sum())
         t2 = time.perf_counter()
 
         V = tr.records_per_path
@@ -269,6 +276,8 @@ class NRCRenderer:
                                    rng.generator)
             losses.append(self.cache.train_step(*batch))
         self.ring.push(records, valid)
+        if st.debias.enabled and st.debias.train_on_suffixes:  # unbiased suffixes: more records for later batches
+            self.ring.push(*debias.suffix_records(trace, q))
         t3 = time.perf_counter()
 
         stats: dict[str, Any] = {
@@ -278,6 +287,7 @@ class NRCRenderer:
             "training_pixels_scattering": int(trace.scattered.sum()),
             **{f"time_{k}_s": v for k, v in trace.timers.items()}, **trace.counts, **infer_counts,
             **{k: v for k, v in st.light_sampling.metrics(lights).items() if k in LIGHT_SCALARS}, **reuse_stats,
+            **debias_stats,
         }
         return image, stats, losses
 
@@ -389,7 +399,7 @@ class NRCRenderer:
             "renderer": self.name, "frames": self.frames, "first_frame": start, "spp": self.scene.integrator.spp,
             "accumulate": st.accumulate, "transmittance": self.transmittance.name,
             "termination": st.termination.rule, "cache_target": st.cache_target, "time_frames_s": elapsed,
-            **st.light_sampling.metrics(self.lights), **st.reuse.metrics(self.scene.g),
+            **st.light_sampling.metrics(self.lights), **st.reuse.metrics(self.scene.g), **st.debias.metrics(),
             "shadow_rays": int(sum(h.get("shadow_rays", []))),
             "equiangular_segments": int(sum(h.get("equiangular_segments", []))),
             "training_image": [st.training.width, st.training.height], "training_auto": st.training.auto,

@@ -11,6 +11,7 @@ from typing import Any
 
 from nrc.config import ConfigReader
 from nrc.errors import ConfigError
+from nrc.render.radiance_caching.debias import DebiasSettings
 from nrc.render.radiance_caching.termination import Termination
 from nrc.render.wavefront.reuse import ReuseSettings
 from nrc.transport.light_sampling import LightSamplingSettings
@@ -58,6 +59,7 @@ class NRCSettings:
     cache_target: str  # full | indirect (nrc.render.radiance_caching.paths)
     light_sampling: LightSamplingSettings  # light_selection, ris.candidates, point_light_sampling
     reuse: ReuseSettings  # reservoir reuse at the render paths' first vertex (nrc.render.wavefront.reuse)
+    debias: DebiasSettings  # the cache as a control variate (nrc.render.radiance_caching.debias)
     training: TrainingSettings
     inference_batch: int
     accumulate: bool
@@ -87,6 +89,7 @@ class NRCSettings:
             cache_target=cfg.get_choice("cache_target", CACHE_TARGETS, "indirect"),
             light_sampling=LightSamplingSettings.from_config(cfg, defaults=True),
             reuse=ReuseSettings.from_config(cfg, defaults=True),
+            debias=DebiasSettings.from_config(cfg),
             training=TrainingSettings(
                 **_training_size(tr),
                 records_per_path=tr.get_int("records_per_path", 4, lo=1),

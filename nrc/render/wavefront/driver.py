@@ -17,6 +17,12 @@ light of a recorded vertex (its next-event estimate, the MIS-weighted environmen
 reaches) goes to a second block of record rows (:attr:`Harvest.direct_base`), so that the caller can take it
 out of the record's target.
 
+With ``renderer.debias`` (:mod:`nrc.render.radiance_caching.debias`) a render path continued past its cache
+termination gives its suffix (everything it gathers from that vertex on, with throughput ``beta / q``) to a row of
+its own, :attr:`Harvest.suffix_base` + its sample id, and its cache query (weight ``beta (1 - 1/q)``) is recorded
+at the vertex pass; the caller adds the suffix rows to the pixels. Under ``cache_target=indirect`` the vertex's
+own next-event estimate (light sampling alone, throughput ``beta``) stays in the pixel's row.
+
 Memory: the state (``Layout``), the shadow queue (at most ``shadow_batch`` + one vertex pass of requests)
 and the caller's accumulator; independent of image size and spp.
 """
@@ -32,7 +38,7 @@ import torch
 from torch import Tensor
 
 from nrc.render.wavefront.machine import MIN_SLOTS, Machine, SceneInputs
-from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, accumulator_row
+from nrc.render.wavefront.state import CONTINUED, DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, accumulator_row
 from nrc.transport.light_sampling import LightSampler, power_heuristic
 from nrc.transport.rng import hash32
 from nrc.transport.rng import uniforms as counter_uniforms
@@ -123,7 +129,16 @@ class Harvest:
     # cache_target=indirect: accumulator row of record 0's direct light (next-event estimate and MIS-weighted
     # environment of a recorded vertex go to direct_base + record instead of the record's row); None: full
     direct_base: int | None = None
-    queries: dict[str, list[Tensor]] = field(default_factory=lambda: {k: [] for k in ("x", "d", "w", "dest", "pid")})
+    queries: dict[str, list[Tensor]] = field(
+        default_factory=lambda: {k: [] for k in ("x", "d", "w", "dest", "pid", "cont")})
+    # renderer.debias: the probability q of going on past a cache termination (0: off); accumulator row of render
+    # sample 0's suffix (a continued path's contributions from its terminal vertex on, sample k's at
+    # suffix_base + k); the continued paths' (sample id, throughput beta at the vertex), in the order of their
+    # queries, which are the ones flagged in queries["cont"]
+    debias_q: float = 0.0
+    suffix_base: int | None = None
+    continued: dict[str, list[Tensor]] = field(default_factory=lambda: {"pid": [], "beta": []})
+    debias_indirect: bool = False  # cache_target=indirect: the continued vertex's own estimate stays in the pixel
 
 
 class Wavefront:
@@ -153,9 +168,15 @@ class Wavefront:
         dest = I[ly.i("dest")]
         if not ly.nrc:
             return dest
+        hv = self.harvest
         j = torch.as_tensor(j, device=dest.device).expand_as(dest)
-        rec = self.harvest.n_pixels + I[ly.i("rec_base")] + j - 1
-        return torch.where((j > 0) & (I[ly.i("rec_base")] >= 0), rec, dest)
+        rec_base = I[ly.i("rec_base")]
+        rec = hv.n_pixels + rec_base + j - 1
+        rows = torch.where((j > 0) & (rec_base >= 0), rec, dest)
+        if hv.suffix_base is not None:  # a continued render path's row 1: its sample's suffix row
+            suffix = (j == 1) & (rec_base < 0) & (I[ly.i("never")] == CONTINUED)
+            rows = torch.where(suffix, hv.suffix_base + I[ly.i("pid")], rows)
+        return rows
 
     def _direct_rows(self, I: Tensor) -> Tensor:
         """Accumulator rows of the given slots' current contributions, except that with ``cache_target=indirect``
@@ -170,7 +191,10 @@ class Wavefront:
 
     def _current_row(self, I: Tensor) -> Tensor | int:
         ly = self.layout
-        return accumulator_row(I[ly.i("rec_base")], I[ly.i("n")], ly.rows - 1) if ly.nrc else 0
+        if not ly.nrc:
+            return 0
+        never = I[ly.i("never")] if self.harvest.suffix_base is not None else None
+        return accumulator_row(I[ly.i("rec_base")], I[ly.i("n")], ly.rows - 1, never)
 
     def _push_segments(self, F: Tensor, I: Tensor, acc: Tensor) -> None:
         """Queue the equi-angular estimate of the segments the given slots start (flying, vertex count below
@@ -199,7 +223,10 @@ class Wavefront:
             if len(e):
                 d = Fd[ly.f("d")][:, e].T.contiguous()
                 pdf = Fd[ly.f("pdf")][e]
-                w = torch.where(pdf > 0, power_heuristic(pdf, self.lights.env_pdf(d)), torch.ones_like(pdf))
+                # pdf 0: a camera ray (no MIS); pdf < 0: a continued path's first segment under cache_target=indirect,
+                # whose vertex's direct light came from light sampling alone (renderer.debias)
+                w = torch.where(pdf > 0, power_heuristic(pdf, self.lights.env_pdf(d)),
+                                (pdf == 0).to(pdf.dtype))
                 Ie = Id[:, e]
                 # escaped from a recorded vertex: the MIS-weighted environment is that record's direct light
                 acc.index_add_(0, self._direct_rows(Ie), Fd[ly.f("beta")][:, e].T * self.lights.env_radiance(d) * w[:, None])
@@ -217,6 +244,8 @@ class Wavefront:
             hv.queries["w"].append(Fd[ly.f("beta")][:, q].T)
             hv.queries["dest"].append(self._rows(Iq, self._current_row(Iq)))
             hv.queries["pid"].append(Iq[ly.i("pid")])
+            if hv.suffix_base is not None:
+                hv.queries["cont"].append(torch.zeros(len(q), dtype=torch.bool, device=q.device))
         train = (Id[ly.i("rec_base")] >= 0) & ((Id[ly.i("n")] > 0) | (flight == QUERY))
         if bool(train.any()):
             hv.scattered[Id[ly.i("pid")][train] - hv.n_render] = True
@@ -232,6 +261,20 @@ class Wavefront:
         if self.reuse is not None:
             self.reuse.record(ly, Fi, Ii, Fs, Is)
         hv = self.harvest
+        here = None  # renderer.debias: the slots continued past their cache termination at this vertex
+        if hv is not None and hv.suffix_base is not None:
+            here = (Is[ly.i("never")] == CONTINUED) & (Ii[ly.i("never")] != CONTINUED)
+            c = here.nonzero().squeeze(1)
+            if len(c):  # the cache's control-variate query at the vertex: weight beta (1 - 1/q)
+                Ic, beta = Ii[:, c], Fi[ly.f("beta")][:, c].T
+                hv.queries["x"].append(Fs[ly.f("o")][:, c].T)
+                hv.queries["d"].append(Fi[ly.f("d")][:, c].T)
+                hv.queries["w"].append(beta * (1.0 - 1.0 / hv.debias_q))
+                hv.queries["dest"].append(Ic[ly.i("dest")])
+                hv.queries["pid"].append(Ic[ly.i("pid")])
+                hv.queries["cont"].append(torch.ones(len(c), dtype=torch.bool, device=c.device))
+                hv.continued["pid"].append(Ic[ly.i("pid")])
+                hv.continued["beta"].append(beta)
         if hv is not None:
             rec = Is[ly.i("rec")]
             r = (rec >= 0).nonzero().squeeze(1)
@@ -246,8 +289,11 @@ class Wavefront:
             qd = (Is[ly.i("shadow")] == 2).nonzero().squeeze(1)
             if len(qd):
                 Iq = Is[:, qd]
+                rows = self._direct_rows(Iq)
+                if here is not None and hv.debias_indirect:  # the continued vertex's own estimate: the pixel's
+                    rows = torch.where(here[qd], Iq[ly.i("dest")], rows)
                 self.shadow.push(Fs[ly.f("o")][:, qd].T.contiguous(), Fs[ly.f("wi")][:, qd].T.contiguous(),
-                                 Fs[ly.f("tse")][qd], Fs[ly.f("csh")][:, qd].T, self._direct_rows(Iq), acc=acc)
+                                 Fs[ly.f("tse")][qd], Fs[ly.f("csh")][:, qd].T, rows, acc=acc)
                 Is[ly.i("shadow"), qd] = 0
         if self.equiangular is not None:
             self._push_segments(Fs, Is, acc)

@@ -56,7 +56,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from nrc.render.wavefront.state import QUERY, Layout
+from nrc.render.wavefront.state import CONTINUED, QUERY, Layout
 from nrc.transport.light_sampling import LightSampler, luminance3, power_heuristic
 from nrc.transport.phase import hg_pdf
 
@@ -158,12 +158,17 @@ class VertexRecord:
     beta: Tensor
     mis: Tensor
     valid: Tensor
+    # renderer.debias: the probability q of going on past a cache termination. A path continued at the reuse
+    # vertex takes part in the MIS and carries 1/q under cache_target=full (its estimate there is part of the
+    # suffix); under indirect it keeps the terminal vertex's estimate (no MIS, throughput beta)
+    debias_q: float = 0.0
 
     @classmethod
-    def empty(cls, n: int, vertex: int, albedo: float, indirect: bool, device: torch.device) -> VertexRecord:
+    def empty(cls, n: int, vertex: int, albedo: float, indirect: bool, device: torch.device,
+              debias_q: float = 0.0) -> VertexRecord:
         z3 = torch.zeros(n, 3, device=device)
         zb = torch.zeros(n, dtype=torch.bool, device=device)
-        return cls(vertex, float(albedo), indirect, z3, z3.clone(), z3.clone(), zb, zb.clone())
+        return cls(vertex, float(albedo), indirect, z3, z3.clone(), z3.clone(), zb, zb.clone(), float(debias_q))
 
     @property
     def n(self) -> int:
@@ -180,10 +185,17 @@ class VertexRecord:
         if not len(idx):
             return
         slot = (I[ly.i("pid")] if ly.nrc else I[ly.i("dest")])[idx]
+        mis, scale = go[idx], torch.ones(len(idx), device=F.device)
+        if self.debias_q > 0:  # continued past the cache termination here (renderer.debias)
+            cont = (Is[ly.i("never")][idx] == CONTINUED) & (I[ly.i("never")][idx] != CONTINUED)
+            if self.indirect:
+                mis = mis & ~cont
+            else:
+                scale = torch.where(cont, scale / self.debias_q, scale)
         self.x[slot] = Fs[ly.f("o")][:, idx].T
         self.d[slot] = F[ly.f("d")][:, idx].T
-        self.beta[slot] = F[ly.f("beta")][:, idx].T * self.albedo
-        self.mis[slot] = go[idx]
+        self.beta[slot] = F[ly.f("beta")][:, idx].T * self.albedo * scale[:, None]
+        self.mis[slot] = mis
         self.valid[slot] = True
 
 

@@ -83,11 +83,12 @@ class Core:
     # 30,784 paths), so from ~0.3 M paths x frames = 1/12 of its 4 M.
     warm_fraction: float = 0.25
 
-    def inputs_for(self, lights: LightSampler) -> SceneInputs:
-        """The scene inputs with other lights of the same structure (an animated sun): only ``P`` changes."""
+    def inputs_for(self, lights: LightSampler, debias_q: float = 0.0) -> SceneInputs:
+        """The scene inputs with other lights of the same structure (an animated sun) and the frame's debiasing
+        probability (``renderer.debias``): only ``P`` changes."""
         albedo, g, max_scatter, thr, rr_start, termination = self.scalars
         P = self.step.params(self.grid, self.bricks, LightTable(lights), albedo, g, max_scatter, thr, rr_start,
-                             termination)
+                             termination, debias_q)
         return SceneInputs(P, self.inputs.density, self.inputs.majorant)
 
     def unsupported_reason(self) -> str | None:

@@ -29,7 +29,9 @@ and ``cnt`` (counter-based RNG), ``n`` (real scattering events), ``flight`` (one
 estimator), ``occupied`` (holds an unharvested path), ``n_shadow_steps``; for ``nrc`` also ``pid`` (path
 id), ``rec_base`` (first training record of a training path, -1 for render paths), ``n_term`` (vertex at
 which the path terminates into the cache, 0 undecided), ``extra`` (vertices past the render stop),
-``never`` (never terminates), ``rec`` (training record written at the last vertex, -1 none).
+``never`` (never terminates: 1 a training path's unbiased suffix, :data:`CONTINUED` a render path that would have
+terminated into the cache and goes on as a path-traced suffix, ``renderer.debias``), ``rec`` (training record
+written at the last vertex, -1 none).
 
 Memory: ``4 NF + 8 NI`` bytes a slot (136 for ``pt``, 268 for ``nrc`` with ``V = 4``).
 """
@@ -44,6 +46,9 @@ from torch import Tensor
 
 # flight states
 DONE, FLIGHT, VERTEX, QUERY, ESCAPED = 0, 1, 2, 3, 4
+# ``never`` of a render path continued past its cache termination (renderer.debias): its contributions from there
+# on go to accumulator row 1, the suffix row (the driver maps it to the sample's own row of the accumulator)
+CONTINUED = 2
 
 _FLOAT = [("o", 3), ("d", 3), ("t", 1), ("tmax", 1), ("beta", 3), ("pdf", 1), ("wi", 3), ("ts", 1), ("tse", 1),
           ("tr", 1), ("csh", 3)]
@@ -52,10 +57,12 @@ _INT = ["dest", "key", "cnt", "n", "flight", "shadow", "occupied", "n_shadow_ste
 _INT_NRC = ["pid", "rec_base", "n_term", "extra", "never", "rec"]
 
 
-def accumulator_row(rec_base: Tensor, n: Tensor, V: int) -> Tensor:
+def accumulator_row(rec_base: Tensor, n: Tensor, V: int, never: Tensor | None = None) -> Tensor:
     """Accumulator row ``(S,)`` of each slot's current segment: a training path's ``min(n, V)`` (row 0 is its
-    discard row before the first vertex), 0 (its ``dest``) for a render path."""
-    return torch.where(rec_base >= 0, n.clamp(max=V), torch.zeros_like(n))
+    discard row before the first vertex); for a render path 0 (its ``dest``), or 1 (its suffix row) once it is
+    :data:`CONTINUED` past its cache termination (``never`` given: ``renderer.debias``)."""
+    render = torch.zeros_like(n) if never is None else (never == CONTINUED).long()
+    return torch.where(rec_base >= 0, n.clamp(max=V), render)
 
 
 @dataclass

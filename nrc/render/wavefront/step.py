@@ -17,7 +17,10 @@ eagerly or ``torch.compile``'d (the same code; :mod:`nrc.render.wavefront.machin
     throughput x albedo, a next-event request (one light chosen by the light table, uniformly, by power or by
     resampling candidates (RIS);
     its shadow ray starts in the slot, or is queued for a transmittance estimator that has no per-step form),
-    optional Russian roulette and the phase-sampled continuation.
+    optional Russian roulette and the phase-sampled continuation. With ``renderer.debias`` a render path that would
+    terminate goes on with probability ``q`` instead (throughput ``/ q``, never terminating again), and the driver
+    records its cache query with the weight ``beta (1 - 1/q)``: the cache becomes a control variate (module
+    :mod:`nrc.render.radiance_caching.debias`).
 
 Scene inputs are tensors, never Python constants: ``P`` (float32 ``(n_params,)``: box, grid dimensions,
 density scale, albedo, g, limits, the brick tables' scalars, the lights' parameters; :meth:`Transport.params`),
@@ -40,7 +43,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState, accumulator_row
+from nrc.render.wavefront.state import (CONTINUED, DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState,
+                                       accumulator_row)
 from nrc.transport.light_sampling import LightSampler, LightTable, power_heuristic, resample
 from nrc.transport.phase import hg_pdf, hg_sample_v3
 from nrc.transport.rng import uniforms as counter_uniforms
@@ -62,6 +66,10 @@ class NRCRule:
     # "indirect": the cache holds the scattered radiance minus the direct light, and a terminating path adds
     # next-event estimation by light sampling alone (no MIS: nothing continues to pick up its other half)
     cache_target: str = "full"
+    # renderer.debias (nrc.render.radiance_caching.debias): a render path that would terminate into the cache goes
+    # on instead, with probability q (P's debias_q), as a path-traced suffix of throughput beta / q that never
+    # terminates again (never = CONTINUED); the driver queries the cache there with weight beta (1 - 1/q)
+    debias: bool = False
 
 
 def _where3(m: Tensor, a: tuple, b: tuple) -> tuple:
@@ -95,14 +103,19 @@ class Transport:
         # reservoir reuse (nrc.render.wavefront.reuse): render paths' vertex reuse_vertex (0: none) leaves its
         # next-event estimate to the reuse pass, which the driver records the vertex for
         self.reuse_vertex = int(reuse_vertex)
-        # vertex lanes: phase (2), then Russian roulette, the termination draw (nrc), the light choice
+        # vertex lanes: phase (2), then Russian roulette, the termination draw (nrc), the debias draw (nrc with
+        # renderer.debias), the light choice
         self.lane_rr = 4
         self.lane_term = 4 + russian_roulette
-        self.lane_light = self.lane_term + (nrc is not None)
+        self.debias = nrc is not None and nrc.debias
+        self.lane_debias = self.lane_term + (nrc is not None)
+        self.lane_light = self.lane_debias + self.debias
+        self.indirect_debias = self.debias and nrc.cache_target == "indirect"
         m = lights.candidates
         self.lanes = self.lane_light + (lights.lanes if lights.supported else 4 * m + (m > 1))
         names = ["lo", "lo", "lo", "hi", "hi", "hi", "dims", "dims", "dims", "scale", "albedo", "g", "max_scatter",
                  "roulette", "rr_start", "min_vertices", "p_continue", "spread_c"]
+        names += ["debias_q"] if self.debias else []
         self.ix: dict[str, int] = {}
         for k, name in enumerate(names):
             self.ix.setdefault(name, k)
@@ -128,8 +141,9 @@ class Transport:
     # ------------------------------------------------------------------ scene inputs
     def params(self, grid: Any, bricks: BrickTables, lights: LightTable, albedo: float, g: float,
                max_scatter: int, roulette_threshold: float, rr_start: int | None,
-               termination: Any = None) -> Tensor:
-        """The scene's numbers as the step's ``P`` input (float32 on the grid's device)."""
+               termination: Any = None, debias_q: float = 0.0) -> Tensor:
+        """The scene's numbers as the step's ``P`` input (float32 on the grid's device; ``debias_q``: the
+        probability that a render path goes on past its cache termination, with ``renderer.debias``)."""
         if lights.structure != self.lights.structure or bricks.n_tables != self.n_tables or \
                 lights.supported != self.lights.supported:
             raise ValueError("scene structure differs from the step's")
@@ -140,6 +154,8 @@ class Transport:
             vals += [float(termination.min_vertices), float(termination.p_continue), float(termination.spread_c)]
         else:
             vals += [0.0, 0.0, 0.0]
+        if self.debias:
+            vals.append(float(debias_q))
         vals += bricks.values + lights.values
         return torch.tensor(vals, dtype=torch.float32, device=grid.device)
 
@@ -151,7 +167,7 @@ class Transport:
         """Accumulator row ``(S,)`` that contributions of each slot's current segment go to (``None``: row 0)."""
         if self.layout.rows == 1:
             return None
-        return accumulator_row(s.rec_base, s.n, self.layout.rows - 1)
+        return accumulator_row(s.rec_base, s.n, self.layout.rows - 1, s.never if self.debias else None)
 
     # ------------------------------------------------------------------ one tracking step
     def track(self, F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> tuple[Tensor, Tensor]:
@@ -230,6 +246,7 @@ class Transport:
         n_s = s.n + 1
         beta_s = tuple(b * albedo for b in s.beta)
         go = torch.ones_like(s.n, dtype=torch.bool)  # the path scatters here (nrc: it does not terminate)
+        cont = torch.zeros_like(go)  # renderer.debias: a render path goes on past its cache termination here
 
         if self.nrc is not None:
             V = self.nrc.records_per_path
@@ -245,8 +262,13 @@ class Transport:
                 fire = eligible & (spread * spread > p[self.ix["spread_c"]] * a0)
             n_term = torch.where(fire & (s.n_term == 0) & (s.never == 0), n_s + s.extra, s.n_term)
             terminate = (n_term > 0) & (n_s >= n_term)
-            go = ~terminate
             is_train = s.rec_base >= 0
+            if self.debias:  # with probability q the render path goes on as a path-traced suffix
+                cont = terminate & ~is_train & (u[self.lane_debias] < p[self.ix["debias_q"]])
+                terminate = terminate & ~cont
+                n_term = torch.where(cont, torch.zeros_like(n_term), n_term)
+                s.never = torch.where(cont, torch.full_like(s.never, CONTINUED), s.never)
+            go = ~terminate
             recorded = go & is_train & (n_s <= V)
             beta_s = tuple(torch.where(recorded, albedo + zero, b) for b in beta_s)
             s.rec = torch.where(recorded, s.rec_base + n_s - 1, torch.full_like(s.rec, -1))
@@ -279,9 +301,17 @@ class Transport:
                 wi, l_dist, l_w, l_pdf, l_env = cands[0] if m == 1 else resample(cands, phase_of, ul[4 * m])[0]
             tse = torch.minimum(box_exit(lo, hi, x, wi), l_dist)
             phase = phase_of(wi)
-            w = phase * torch.where(l_env & go, power_heuristic(l_pdf, phase), torch.ones_like(phase))
-            csh = tuple(b * lw * w for b, lw in zip(beta_s, l_w))
+            # MIS against phase sampling where the path goes on to find the environment; a continued path under
+            # cache_target=indirect keeps the terminal vertex's estimate (light sampling alone, throughput beta)
+            mis = go & ~cont if self.indirect_debias else go
+            w = phase * torch.where(l_env & mis, power_heuristic(l_pdf, phase), torch.ones_like(phase))
+            b_nee = beta_s
+            if self.debias and not self.indirect_debias:  # full: the vertex's estimate is part of the suffix
+                b_nee = tuple(torch.where(cont, b / p[self.ix["debias_q"]], b) for b in beta_s)
+            csh = tuple(b * lw * w for b, lw in zip(b_nee, l_w))
             sh = torch.where(nee, torch.full_like(sh, 1 if self.inline_shadow else 2), sh)
+        if self.debias:  # the suffix carries 1/q
+            beta_s = tuple(torch.where(cont, b / p[self.ix["debias_q"]], b) for b in beta_s)
         amax = torch.maximum(torch.maximum(beta_s[0], beta_s[1]), beta_s[2])
         stop = amax <= 0
         if not lights.has_env:  # the last vertex only continues when phase sampling can reach the sky (MIS)
@@ -298,7 +328,9 @@ class Transport:
         s.t = torch.where(go, zero, s.t)
         s.tmax = torch.where(go, t_far, s.tmax)
         s.beta = _where3(go, beta_s, s.beta)
-        s.pdf = torch.where(go, pdf_s, s.pdf)
+        # pdf < 0 marks a segment whose environment is not counted at the escape: a continued path's first segment
+        # under cache_target=indirect (its vertex's direct light came from light sampling alone)
+        s.pdf = torch.where(go, torch.where(cont, -pdf_s, pdf_s) if self.indirect_debias else pdf_s, s.pdf)
         s.wi = _where3(nee, wi, s.wi)
         s.ts = torch.where(nee, zero, s.ts)
         s.tse = torch.where(nee, tse, s.tse)
