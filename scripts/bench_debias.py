@@ -48,7 +48,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_intermixed_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    meta = {"argv": sys.argv[1:] if argv is None else argv, "machine": db.machine()}
+    argv_used = list(sys.argv[1:] if argv is None else argv)
+    if "--save" in argv_used:  # a folder of this machine's, not part of the result
+        i = argv_used.index("--save")
+        del argv_used[i:i + 2]
+    meta = {"argv": argv_used, "machine": db.machine()}
     if args.check == "blocks":
         w, h = args.width or 48, args.height or 27
         presets = {name: sized(name, w, h) for name in args.presets.split(",")}
