@@ -17,6 +17,17 @@ rendered at ``ceil(t_reuse / t_none)`` spp for the denoised comparison at equal 
 ``--nrc`` scene types also run ``renderer=nrc`` frames of the static camera (``none`` against
 ``spatiotemporal``; the reference must exist, i.e. the scene was in ``--scenes`` once).
 
+``--decompose`` scene types (``name`` or ``name:override,override``) get the variance decomposition instead:
+each 1-spp pass is split into ``A`` (everything but the reuse vertex's direct light: what the trace adds) and
+that direct light estimated by the vertex's own RIS (``B``, the ``none`` estimator) and by each reuse variant
+(``C``: spatial / spatiotemporal x ``mis`` balance / pairwise, each with its own history, all on the same
+vertices). Per-pixel variances over the passes (the first ``--warmup`` left out), relative to the mean image
+squared + 0.01 and averaged over the medium's pixels as relMSE is, give: the direct light's share of the pixel,
+the frame's relative variance with ``B`` and with each ``C``, and the ceiling ``var(A + B) / var(A)``, the gain
+per frame of a noiseless direct-light estimate at the vertex, which no reuse of light samples there can beat.
+``--decompose-nrc`` scene types do the same for 1-spp NRC frames of a static camera (:func:`decompose_nrc`),
+where the cache replaces the rest of the path: both estimators' frames on one cache, against the reference.
+
 Writes ``bench.json`` and ``bench.md`` to ``--out``.
 """
 
@@ -66,15 +77,7 @@ def score(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float
 
 def bench_scene(name: str, args, log) -> dict:
     base = [*PRESETS[name], *COMMON, *args.extra]
-    ref_path = args.out / f"ref_{name}_{args.ref_spp}.npy"
-    if ref_path.is_file():
-        ref = np.load(ref_path)
-    else:
-        log(f"{name}: reference, {args.ref_spp} spp")
-        res, secs, _ = render([*base, f"scene.integrator.spp={args.ref_spp}", "scene.integrator.seed=900001"])
-        ref = res.image
-        np.save(ref_path, ref)
-        log(f"  {secs:.0f} s")
+    ref = reference(name, base, args, log)
     cfg = compose(base)
     mask = medium_mask(medium_alpha(load_scene(cfg.scene)))
     out: dict = {"scene": name, "overrides": base, "modes": {}}
@@ -145,6 +148,213 @@ def bench_nrc(name: str, args, log) -> dict:
     return out
 
 
+DECOMPOSE_VARIANTS = [("spatial", "balance"), ("spatial", "pairwise"), ("spatiotemporal", "balance"),
+                      ("spatiotemporal", "pairwise")]
+
+
+def decompose_scene(spec: str, args, log) -> dict:
+    """The variance decomposition of ``--decompose`` (module docstring) for ``name[:override,...]``."""
+    import dataclasses
+
+    from nrc.render.wavefront.reuse import ReservoirReuse, VertexRecord
+
+    name, _, more = spec.partition(":")
+    extra = [o for o in more.split(",") if o]
+    passes = args.frames
+    cfg = compose([*PRESETS[name], *COMMON, *args.extra, *extra, "renderer.reuse.mode=spatial",
+                   f"scene.integrator.spp={passes}", "scene.integrator.seed=1"])
+    scene = load_scene(cfg.scene)
+    pt = PathTracer(scene, cfg)
+    mask = medium_mask(medium_alpha(scene)).reshape(-1)
+    cam, n, st = scene.camera, scene.camera.num_pixels, pt.settings
+    gen = torch.Generator(device=pt.device).manual_seed(7)
+    machine, _, _ = pt.core.choose(n)
+    reusers = {f"{m}/{w}": ReservoirReuse(dataclasses.replace(st.reuse, mode=m, mis=w), scene.g, 1, scene.grid)
+               for m, w in DECOMPOSE_VARIANTS}
+    own = next(iter(reusers.values()))
+    parts: dict[str, list] = {"A": [], "B": [], **{k: [] for k in reusers}}
+    secs = {"trace": 0.0, "B": 0.0, **{k: 0.0 for k in reusers}}
+    shade_args = (pt.transmittance, scene.grid, pt.majorants, gen, pt.shadow_batch)
+    for j in range(passes):
+        rec = VertexRecord.empty(n, st.reuse.vertex(scene.g), scene.albedo, False, pt.device)
+        one = torch.zeros(n, 3, device=pt.device)
+        t0 = time.perf_counter()
+        pt._wavefront(machine, gen, rec).run(n, lambda r, j=j: pt._camera_paths(r * passes + j), one)
+        t1 = time.perf_counter()
+        parts["B"].append(own.shade(own.initial(rec, pt.lights, gen), rec, pt.lights, *shade_args).cpu().numpy())
+        secs["trace"] += t1 - t0
+        secs["B"] += time.perf_counter() - t1
+        parts["A"].append(one.cpu().numpy())
+        for k, ru in reusers.items():
+            t2 = time.perf_counter()
+            parts[k].append(ru.frame(rec, cam, pt.lights, *shade_args)[0].cpu().numpy())
+            secs[k] += time.perf_counter() - t2
+    x = {k: np.stack(v)[args.warmup:] for k, v in parts.items()}
+    den = (x["A"] + x["B"]).mean(0) ** 2 + 0.01
+
+    def rel_var(v: np.ndarray) -> float:
+        return float((v.var(0, ddof=1) / den)[mask].mean())
+
+    def image_var(v: np.ndarray) -> float:  # brightness-weighted: summed variance over the summed mean squared
+        return float(v.var(0, ddof=1)[mask].sum() / (den - 0.01)[mask].sum())
+
+    mean_a, mean_b = float(x["A"].mean(0)[mask].mean()), float(x["B"].mean(0)[mask].mean())
+    none = rel_var(x["A"] + x["B"])
+    out = {"scene": spec, "passes_scored": passes - args.warmup, "direct_share": mean_b / (mean_a + mean_b),
+           "rel_var_none": none, "rel_var_trace_only": rel_var(x["A"]), "ceiling": none / rel_var(x["A"]),
+           "ceiling_image": image_var(x["A"] + x["B"]) / image_var(x["A"]), "rel_var_direct_own": rel_var(x["B"]), "s_per_pass_trace": secs["trace"] / passes,
+           "s_per_pass_own": secs["B"] / passes, "variants": {}}
+    for k in reusers:
+        out["variants"][k] = {"rel_var_direct": rel_var(x[k]), "rel_var_frame": rel_var(x["A"] + x[k]),
+                              "gain_direct": rel_var(x["B"]) / rel_var(x[k]),
+                              "gain_frame": none / rel_var(x["A"] + x[k]),
+                              "gain_direct_image": image_var(x["B"]) / image_var(x[k]),
+                              "gain_frame_image": image_var(x["A"] + x["B"]) / image_var(x["A"] + x[k]),
+                              "mean_direct_over_own": float(x[k].mean(0)[mask].mean()) / mean_b,
+                              "s_per_pass": secs[k] / passes}
+    log(f"decompose {spec}: direct share {out['direct_share']:.3f}, ceiling {out['ceiling']:.2f}x; " + ", ".join(
+        f"{k} direct {v['gain_direct']:.2f}x frame {v['gain_frame']:.2f}x" for k, v in out["variants"].items()))
+    return out
+
+
+class _RecordingReuse:
+    """Wraps the NRC renderer's :class:`ReservoirReuse`: each frame it also estimates the vertices' direct light
+    by their own RIS (the ``none`` estimator, on a generator of its own, so the render and the cache's training
+    are those of the run without the recording) and keeps both per pixel."""
+
+    def __init__(self, inner, device) -> None:
+        self.inner, self.gen = inner, torch.Generator(device=device).manual_seed(99)
+        self.own: list[np.ndarray] = []
+        self.reused: list[np.ndarray] = []
+        self.s_own: list[float] = []
+
+    def frame(self, rec, camera, lights, transmittance, grid, majorants, gen, batch):
+        t0 = time.perf_counter()
+        own = self.inner.shade(self.inner.initial(rec, lights, self.gen), rec, lights, transmittance, grid,
+                               majorants, self.gen, batch)
+        self.s_own.append(time.perf_counter() - t0)
+        out, stats = self.inner.frame(rec, camera, lights, transmittance, grid, majorants, gen, batch)
+        self.own.append(own.cpu().numpy())
+        self.reused.append(out.cpu().numpy())
+        return out, stats
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def reference(name: str, base: list[str], args, log) -> np.ndarray:
+    """The scene type's converged reference (``--ref-spp``, rendered once without reuse and kept in ``--out``)."""
+    ref_path = args.out / f"ref_{name}_{args.ref_spp}.npy"
+    if ref_path.is_file():
+        return np.load(ref_path)
+    log(f"{name}: reference, {args.ref_spp} spp")
+    res, secs, _ = render([*base, f"scene.integrator.spp={args.ref_spp}", "scene.integrator.seed=900001"])
+    np.save(ref_path, res.image)
+    log(f"  {secs:.0f} s")
+    return res.image
+
+
+def decompose_nrc(name: str, args, log) -> dict:
+    """``--decompose-nrc``: the decomposition for 1-spp NRC frames of a static camera. The render runs with
+    ``spatiotemporal`` reuse; each frame's image minus the reuse pass's direct light is ``A`` (the rest of the
+    render paths and the cache), to which the vertices' own-RIS direct light (``none``) or the reused one is
+    added: the frames of both estimators on the same cache, scored against the reference (relMSE, the image mean,
+    the same after OIDN) and by their variance over the frames (which includes the cache's drift)."""
+    from nrc.render.radiance_caching import NRCRenderer
+
+    pt_base = [*PRESETS[name], *COMMON, *args.extra]
+    ref = reference(name, pt_base, args, log)
+    cfg = compose([*PRESETS[name], "renderer=nrc", "renderer.backend=eager", "renderer.light_selection=ris",
+                   "renderer.log.tensorboard=false", f"frames={args.nrc_frames}", "scene.integrator.spp=1",
+                   "renderer.reuse.mode=spatiotemporal", *args.extra])
+    scene = load_scene(cfg.scene)
+    mask = medium_mask(medium_alpha(scene))
+    r = NRCRenderer(scene, cfg)
+    rec = r.reuse = _RecordingReuse(r.reuse, r.device)
+    images, times, t_reuse = [], [], []
+
+    def on_frame(f, img, output, stats):
+        images.append(np.asarray(img.cpu() if hasattr(img, "cpu") else img).reshape(-1, 3).copy())
+        times.append(stats.get("time_frame_s", float("nan")))
+        t_reuse.append(stats.get("time_reuse_s", float("nan")))
+
+    r.render(on_frame=on_frame)
+    w = args.nrc_warmup
+    img, own, reused = (np.stack(v)[w:] for v in (images, rec.own, rec.reused))
+    rest = img - reused
+    frames = {"none": rest + own, "spatiotemporal": img}
+    hw = (scene.camera.height, scene.camera.width, 3)
+    m = mask.reshape(-1)
+    den = img.mean(0) ** 2 + 0.01
+
+    def rel_var(v: np.ndarray) -> float:
+        return float((v.var(0, ddof=1) / den)[m].mean())
+
+    out: dict = {"scene": name, "renderer": "nrc", "frames_scored": len(img),
+                 "direct_share": float(own.mean(0)[m].mean() / (rest.mean(0)[m].mean() + own.mean(0)[m].mean())),
+                 "ceiling": rel_var(rest + own) / rel_var(rest), "modes": {}}
+    t_frame, t_st = float(np.median(times[w:])), float(np.median(t_reuse[w:]))
+    for mode, v in frames.items():
+        scores = [score(f.reshape(hw), ref, mask) for f in v]
+        row = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
+        row["rel_var_frames"] = rel_var(v)
+        # seconds per frame: the run's; none's replaces the reuse pass by the own-RIS estimate
+        row["seconds_per_frame"] = t_frame if mode == "spatiotemporal" else \
+            t_frame - t_st + float(np.median(rec.s_own[w:]))
+        out["modes"][mode] = row
+        log(f"nrc decompose {name} {mode}: " + ", ".join(f"{k} {x:.4g}" for k, x in row.items()))
+    no, st = out["modes"]["none"], out["modes"]["spatiotemporal"]
+    st["gain_variance_per_frame"] = no["rel_var_frames"] / st["rel_var_frames"]
+    st["gain_variance_equal_time"] = st["gain_variance_per_frame"] * no["seconds_per_frame"] / st["seconds_per_frame"]
+    st["gain_rel_mse_per_frame"] = no["rel_mse"] / st["rel_mse"]
+    st["gain_rel_mse_oidn_per_frame"] = no["rel_mse_oidn"] / st["rel_mse_oidn"]
+    return out
+
+
+def decompose_nrc_markdown(results: list[dict]) -> str:
+    lines = ["", "## NRC frames (`--decompose-nrc`): the two estimators of the first vertex's direct light on one "
+             "cache", "", "| scene | frames | direct share | ceiling | estimator | s/frame | relMSE | mean/ref | "
+             "relMSE OIDN | mean/ref OIDN | relVar over frames | gain: variance per frame / at equal time | "
+             "gain: relMSE / relMSE OIDN per frame |", "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        for i, (mode, row) in enumerate(r["modes"].items()):
+            head = f"| {r['scene']} | {r['frames_scored']} | {r['direct_share']:.3f} | {r['ceiling']:.2f}x" \
+                if i == 0 else "| | | |"
+            g1 = (f"{row['gain_variance_per_frame']:.2f}x / {row['gain_variance_equal_time']:.2f}x"
+                  if "gain_variance_per_frame" in row else "-")
+            g2 = (f"{row['gain_rel_mse_per_frame']:.2f}x / {row['gain_rel_mse_oidn_per_frame']:.2f}x"
+                  if "gain_rel_mse_per_frame" in row else "-")
+            lines.append(f"{head} | {mode} | {row['seconds_per_frame']:.3f} | {row['rel_mse']:.4g} | "
+                         f"{row['mean_ratio']:.4f} | {row['rel_mse_oidn']:.4g} | {row['mean_ratio_oidn']:.4f} | "
+                         f"{row['rel_var_frames']:.4g} | {g1} | {g2} |")
+    return "\n".join(lines) + "\n"
+
+
+def decompose_markdown(results: list[dict], meta: dict) -> str:
+    lines = ["# Reservoir reuse: where a 1-spp frame's variance is (`scripts/bench_reuse.py --decompose`)", "",
+             f"{meta['machine']}; torch {meta['torch']}; code {meta['code']}; {meta['frames']} passes, first "
+             f"{meta['warmup']} left out; extra: {' '.join(meta['extra']) or '-'}", "",
+             "Relative variances (per pixel over the passes, over the mean image squared + 0.01, averaged over the "
+             "medium). `direct`: the reuse vertex's direct light; ceiling: the frame's variance over that of the "
+             "frame without it (a noiseless direct-light estimate). Gains are variance ratios per frame against "
+             "the vertex's own RIS (`none`), at the same vertices; times per 1-spp pass. `image`: the same gains "
+             "brightness-weighted (summed variance over the summed mean squared), which bright pixels dominate.", "",
+             "| scene | direct share | relVar frame (none) | ceiling (image) | variant | direct: relVar (gain) | "
+             "frame: relVar (gain) | gain image: direct / frame | mean direct / none | s/pass (trace + reuse) |",
+             "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|"]
+    for r in results:
+        for i, (k, v) in enumerate(r["variants"].items()):
+            head = (f"| {r['scene']} | {r['direct_share']:.3f} | {r['rel_var_none']:.4g} | {r['ceiling']:.2f}x "
+                    f"({r['ceiling_image']:.2f}x)" if i == 0 else "| | | |")
+            lines.append(f"{head} | {k} | {v['rel_var_direct']:.4g} ({v['gain_direct']:.2f}x) | "
+                         f"{v['rel_var_frame']:.4g} ({v['gain_frame']:.2f}x) | {v['gain_direct_image']:.2f}x / "
+                         f"{v['gain_frame_image']:.2f}x | {v['mean_direct_over_own']:.3f} | "
+                         f"{r['s_per_pass_trace']:.2f} + {v['s_per_pass']:.2f} |")
+        lines.append(f"| | | | | none (own RIS) | {r['rel_var_direct_own']:.4g} | {r['rel_var_none']:.4g} | 1 / 1 | 1 | "
+                     f"{r['s_per_pass_trace']:.2f} + {r['s_per_pass_own']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
 def markdown(results: list[dict], meta: dict) -> str:
     lines = [f"# Reservoir reuse: 1-spp frames ({meta['frames']} frames, first {meta['warmup']} left out)", "",
              f"{meta['machine']}; torch {meta['torch']}; code {meta['code']}; extra: {' '.join(meta['extra']) or '-'}", "",
@@ -178,11 +388,27 @@ def main() -> int:
     ap.add_argument("--nrc", default="", help="scene types to run NRC frames on too (static camera)")
     ap.add_argument("--nrc-frames", type=int, default=16)
     ap.add_argument("--nrc-warmup", type=int, default=8)
+    ap.add_argument("--decompose", default="", help="scene types (name or name:override,override; ';' between "
+                    "them) to decompose the variance of instead (module docstring)")
+    ap.add_argument("--decompose-nrc", default="", help="scene types to decompose NRC frames of (module "
+                    "docstring; uses --nrc-frames, --nrc-warmup and the reference)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
     def log(msg: str) -> None:
         print(msg, flush=True)
+
+    if args.decompose or args.decompose_nrc:
+        results = [decompose_scene(s, args, log) for s in args.decompose.split(";") if s]
+        nrc = [decompose_nrc(s, args, log) for s in args.decompose_nrc.split(",") if s]
+        meta = {"frames": args.frames, "warmup": args.warmup, "nrc_frames": args.nrc_frames,
+                "nrc_warmup": args.nrc_warmup, "ref_spp": args.ref_spp, "extra": args.extra, "code": code_version(),
+                "torch": torch.__version__, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads"}
+        (args.out / "decompose.json").write_text(json.dumps({"meta": meta, "results": results, "nrc": nrc}, indent=1))
+        md = (decompose_markdown(results, meta) if results else "") + (decompose_nrc_markdown(nrc) if nrc else "")
+        (args.out / "decompose.md").write_text(md)
+        print(md)
+        return 0
 
     results = [bench_scene(s, args, log) for s in args.scenes.split(",") if s]
     results += [bench_nrc(s, args, log) for s in args.nrc.split(",") if s]

@@ -87,8 +87,40 @@ def test_merge_keeps_the_confidence_sum_and_the_contribution_weight():
     torch.testing.assert_close(both.W[v][ok], expect[ok], rtol=1e-4, atol=0)
 
 
-@pytest.mark.parametrize("mode", ["spatial", "spatiotemporal"])
-def test_reuse_is_unbiased_against_the_sum_over_the_lights(mode):
+@pytest.mark.parametrize("mis", ["balance", "pairwise"])
+def test_mis_weights_sum_to_one_for_a_shared_sample(mis):
+    """Five inputs at different vertices holding the same light sample: their MIS weights (each input's own,
+    at its own sample) sum to one wherever the receiver's target is positive, an input with no confidence
+    gets none, and the receiver keeps all of it when no neighbour is valid."""
+    cfg = compose(["scene=many_lights", *SMALL])
+    scene = load_scene(cfg.scene)
+    lights = LightSampler.for_scene(scene, "ris", 4)
+    rr = ReservoirReuse(ReuseSettings("spatial", target="unshadowed", mis=mis), scene.g, 1, scene.grid)
+    gen = torch.Generator().manual_seed(5)
+    base = rr.initial(_vertices(scene), lights, gen)
+    inputs = []
+    for k in range(5):
+        rec = _vertices(scene, seed=10 + k)
+        r = Reservoirs(base.light, base.omega, base.W, torch.full_like(base.M, float(1 + 3 * k)), rec.x, rec.d,
+                       rec.mis, rec.valid & base.valid)
+        inputs.append(r)
+    inputs[3].M = torch.zeros_like(inputs[3].M)
+    Ms = [torch.where(r.valid & inputs[0].valid, r.M, torch.zeros_like(r.M)) for r in inputs]
+    p0 = [rr.target(lights, r.light, r.omega, inputs[0].x, inputs[0].d, inputs[0].mis) for r in inputs]
+    m = rr._mis_weights(inputs, Ms, p0, lights)
+    ok = inputs[0].valid & (p0[0] > 0)
+    assert int(ok.sum()) > 100
+    torch.testing.assert_close(sum(m)[ok], torch.ones(int(ok.sum())), rtol=1e-5, atol=1e-6)
+    assert bool((m[3] == 0).all())
+    for r in inputs[1:]:
+        r.valid = torch.zeros_like(r.valid)
+    Ms = [torch.where(r.valid & inputs[0].valid, r.M, torch.zeros_like(r.M)) for r in inputs]
+    m = rr._mis_weights(inputs, Ms, p0, lights)
+    torch.testing.assert_close(m[0][ok], torch.ones(int(ok.sum())))
+
+
+@pytest.mark.parametrize("mode, mis", [("spatial", "balance"), ("spatial", "pairwise"), ("spatiotemporal", "pairwise")])
+def test_reuse_is_unbiased_against_the_sum_over_the_lights(mode, mis):
     """16 point lights and a sky seen from one vertex per pixel of a 40x24 frame (fixed vertices, 6 frames of
     reuse, 24 seeds): the per-pixel mean over seeds matches the brute-force sum over the lights, image-wide
     within 4 standard errors and in 3x3 blocks of 8x8 pixels within 4.5 (a 3 % smaller contribution weight fails
@@ -102,7 +134,7 @@ def test_reuse_is_unbiased_against_the_sum_over_the_lights(mode):
     seeds, frames = 24, 6
     mean, last, own = [], [], []
     for s in range(seeds):
-        rr = ReservoirReuse(ReuseSettings(mode, target="unshadowed"), scene.g, 1, scene.grid)
+        rr = ReservoirReuse(ReuseSettings(mode, target="unshadowed", mis=mis), scene.g, 1, scene.grid)
         gen = torch.Generator().manual_seed(100 + s)
         acc = torch.zeros(rec.n)
         for _ in range(frames):
@@ -156,6 +188,7 @@ def test_reprojection_of_a_static_camera_is_the_identity_and_follows_a_moving_on
     ("renderer.reuse.neighbors=0", "renderer.reuse.neighbors must be >= 1"),
     ("renderer.reuse.history=0", "renderer.reuse.history must be > 0.0"),
     ("+renderer.reuse.depth=2", "renderer.reuse: unknown key(s) depth"),
+    ("renderer.reuse.mis=power", "renderer.reuse.mis must be one of"),
 ])
 def test_bad_reuse_settings_name_the_key(override, message):
     with pytest.raises(ConfigError) as err:
@@ -237,3 +270,28 @@ def test_reuse_with_no_light_left_to_sample_adds_nothing_and_runs():
     res = PathTracer(load_scene(cfg.scene), cfg).render()
     assert np.isfinite(res.image).all() and res.image.mean() > 0
     assert res.metrics["nee_lights"] == 0 and res.metrics["reuse_vertices"] > 0
+
+
+def test_bench_reuse_decomposition_runs_on_a_tiny_scene(tmp_path):
+    """``scripts/bench_reuse.py --decompose`` on a tiny scene: the direct light's share is a fraction, every
+    variant's figures are finite and positive, each variant's direct light has about the own RIS's mean, and
+    the markdown has a row per variant."""
+    import importlib.util
+    import types
+
+    from conftest import REPO
+
+    spec = importlib.util.spec_from_file_location("bench_reuse", REPO / "scripts" / "bench_reuse.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    args = types.SimpleNamespace(frames=10, warmup=2, extra=[], out=tmp_path)
+    tiny = "sun_sky:scene.camera.width=24,scene.camera.height=14,scene.volume.procedural.resolution=20"
+    out = bench.decompose_scene(tiny, args, lambda msg: None)
+    assert 0.0 < out["direct_share"] < 1.0 and out["passes_scored"] == 8
+    assert len(out["variants"]) == 4
+    for v in out["variants"].values():
+        assert all(math.isfinite(x) and x > 0 for k, x in v.items() if k != "mean_direct_over_own")
+        assert 0.5 < v["mean_direct_over_own"] < 1.5
+    md = bench.decompose_markdown([out], {"machine": "-", "torch": "-", "code": "-", "frames": 10, "warmup": 2,
+                                          "extra": []})
+    assert md.count("spatiotemporal/") == 2 and "none (own RIS)" in md

@@ -313,31 +313,16 @@ class LightSampler:
             k = (u[:, 0] * self.n_lights).long().clamp(max=self.n_lights - 1)
         else:
             k = torch.searchsorted(self._cdf, u[:, 0].contiguous(), right=True).clamp(max=self.n_lights - 1)
-        inf = torch.full((n,), float("inf"), device=x.device)
-        wi = torch.zeros(n, 3, device=x.device)
-        wi[:, 1] = 1.0
-        dist, weight = inf.clone(), torch.zeros(n, 3, device=x.device)
+        # the sample y = (k, omega): an environment light's direction is drawn here, a delta light's direction,
+        # distance and contribution at x come from evaluate() (one geometry for sampling and for reuse)
+        omega = torch.zeros(n, 3, device=x.device)
+        omega[:, 1] = 1.0
         light_pdf = torch.zeros(n, device=x.device)
         is_env = torch.zeros(n, dtype=torch.bool, device=x.device)
-        idx = 0
-        for light in self.directional:
-            m = (k == idx)[:, None]
-            wi = torch.where(m, -light.direction, wi)
-            weight = torch.where(m, light.irradiance.expand(n, 3), weight)
-            idx += 1
-        for light in self.points:
-            m = k == idx
-            to = light.position - x
-            r2 = (to * to).sum(-1).clamp(min=1e-12)
-            r = torch.sqrt(r2)
-            wi = torch.where(m[:, None], to / r[:, None], wi)
-            dist = torch.where(m, r, dist)
-            weight = torch.where(m[:, None], light.intensity / r2[:, None], weight)
-            idx += 1
+        idx = len(self.directional) + len(self.points)
         if self.has_uniform_env:
             m = k == idx
-            d = uniform_sphere(u[:, 1:3])
-            wi = torch.where(m[:, None], d, wi)
+            omega = torch.where(m[:, None], uniform_sphere(u[:, 1:3]), omega)
             is_env = is_env | m
             idx += 1
         # Pdf correction for map samples: use the pdf the sample was drawn with (re-evaluating it from
@@ -346,10 +331,11 @@ class LightSampler:
         for emap in self.env_maps:
             m = k == idx
             d, pdf_drawn = emap.sample(u[:, 1:4])
-            wi = torch.where(m[:, None], d, wi)
+            omega = torch.where(m[:, None], d, omega)
             own_fix = torch.where(m, (pdf_drawn - emap.pdf(d)) * self.pmf[idx], own_fix)
             is_env = is_env | m
             idx += 1
+        wi, dist, weight, _ = self.evaluate(k, omega, x)
         # 1 / P(select) of the delta lights' samples
         inv_select = torch.full((n,), float(self.n_lights), device=x.device) if self.selection == "uniform" \
             else 1.0 / self._pmf[k].clamp(min=1e-30)
@@ -358,8 +344,7 @@ class LightSampler:
             # environment radiance over the summed pdf (which includes P(select)).
             pdf = self.env_pdf(wi) + own_fix
             light_pdf = torch.where(is_env, pdf, light_pdf)
-            env_w = self.env_radiance(wi) / pdf.clamp(min=1e-30)[:, None]
-            weight = torch.where(is_env[:, None], env_w, weight * inv_select[:, None])
+            weight = torch.where(is_env[:, None], weight / pdf.clamp(min=1e-30)[:, None], weight * inv_select[:, None])
         else:
             weight = weight * inv_select[:, None]
         return LightSample(wi, dist, weight, light_pdf, is_env, k)

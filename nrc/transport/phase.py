@@ -5,7 +5,7 @@ directions, so ``g > 0`` scatters forward. The density is normalised over the sp
 
     p(mu) = (1 - g^2) / (4 pi (1 + g^2 - 2 g mu)^{3/2}),   integral over the sphere = 1.
 
-Sampling uses the division-free forms of ``/work/shared/ALGORITHMS.md`` (``s = 2u - 1``, ``d = 1 + g s``)::
+Sampling uses the division-free forms of ``../shared/ALGORITHMS.md`` (``s = 2u - 1``, ``d = 1 + g s``)::
 
     1 - mu = (1-g)^2 (1-s) (2 + g(1+s)) / (2 d^2)
     1 + mu = (1+g)^2 (1+s) (2 - g(1-s)) / (2 d^2)

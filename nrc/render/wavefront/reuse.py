@@ -29,10 +29,18 @@ transmittance with ``target=coarse``.
 
 **Unbiased combination** (generalized RIS, Lin et al. 2022): inputs ``i = 0..K`` (0 the receiver) with samples
 ``y_i``, unbiased contribution weights ``W_i`` and confidences ``M_i`` are resampled with weights
-``w_i = m_i(y_i) p_hat_0(y_i) W_i``, ``m_i`` the generalized balance heuristic
-``M_i p_hat_i(y) / sum_j M_j p_hat_j(y)`` over every input's own target (each evaluated at that input's
-vertex: ``(K+1)^2`` target evaluations); the kept ``y`` gets ``W = sum w / p_hat_0(y)`` and
-``M = sum M_j``. The ``m_i`` sum to one for every ``y`` and vanish where input ``i`` cannot produce ``y``, so
+``w_i = m_i(y_i) p_hat_0(y_i) W_i``; the kept ``y`` gets ``W = sum w / p_hat_0(y)`` and ``M = sum M_j``.
+``reuse.mis`` chooses the ``m_i``:
+
+- ``balance`` (the default by measurement, ``docs/path_tracer.md``): the generalized balance heuristic
+  ``M_i p_hat_i(y) / sum_j M_j p_hat_j(y)`` over every input's own target (each evaluated at that input's
+  vertex: ``(K+1)^2`` target evaluations).
+- ``pairwise`` (Bitterli's pairwise MIS with confidences): the receiver ``c`` against each neighbour ``i``
+  alone, ``N = sum_i M_i``: ``m_i(y) = M_i p_hat_i(y) / (N p_hat_i(y) + M_c p_hat_c(y))`` and
+  ``m_c(y) = sum_i (M_i / N) M_c p_hat_c(y) / (N p_hat_i(y) + M_c p_hat_c(y))`` (``3K + 1`` evaluations). With
+  one neighbour (temporal reuse) it is the balance heuristic.
+
+Both sum to one for every ``y`` the receiver can produce and vanish where input ``i`` cannot produce ``y``, so
 the estimate is unbiased for any neighbours; visibility is not in the targets (they are unshadowed and, for
 HG with ``|g| < 1``, positive wherever the light is) and is re-traced at the receiver. The MIS weight against
 phase sampling of the environment is in the shaded integrand (power heuristic of the source pdf against the
@@ -62,6 +70,7 @@ from nrc.transport.phase import hg_pdf
 
 REUSE_MODES = ("none", "spatial", "spatiotemporal")
 REUSE_TARGETS = ("unshadowed", "coarse")
+REUSE_MIS = ("pairwise", "balance")
 
 
 class CoarseTransmittance:
@@ -102,8 +111,8 @@ class ReuseSettings:
     mode: str = "none"
     """``none`` | ``spatial`` | ``spatiotemporal`` (module docstring)."""
     neighbors: int = 4
-    """Spatial neighbours ``K`` combined per pixel (``>= 1``; the combination costs ``(K + 1)^2`` target
-    evaluations)."""
+    """Spatial neighbours ``K`` combined per pixel (``>= 1``; the combination costs ``3K + 1`` target
+    evaluations with ``mis=pairwise``, ``(K + 1)^2`` with ``balance``)."""
     radius: float = 10.0
     """Spatial neighbours are drawn uniformly in a ring of 1 to ``radius`` pixels (``>= 1``)."""
     history: float = 20.0
@@ -114,6 +123,10 @@ class ReuseSettings:
     target: str = "unshadowed"
     """The resampling target: ``unshadowed`` (light x phase) or ``coarse`` (times :class:`CoarseTransmittance`
     towards the light)."""
+    mis: str = "balance"
+    """The resampling MIS weights of spatial reuse: ``balance`` (the generalized balance heuristic over all
+    inputs, ``(K + 1)^2`` target evaluations) or ``pairwise`` (each neighbour against the receiver, ``3K + 1``).
+    Temporal reuse (two inputs): the same. ``balance`` is the default by measurement (``docs/path_tracer.md``)."""
 
     @classmethod
     def from_config(cls, cfg: Any, defaults: bool = False) -> ReuseSettings:
@@ -122,13 +135,15 @@ class ReuseSettings:
         d = cls()
         r = cfg.block("reuse")
         dflt = (lambda v: (v,)) if defaults else (lambda v: ())  # noqa: E731
-        kw = {"default": d.mode} if defaults else {}
+        dflt_kw = (lambda v: {"default": v}) if defaults else (lambda v: {})  # noqa: E731
+        kw = dflt_kw(d.mode)
         settings = cls(mode=r.get_choice("mode", list(REUSE_MODES), **kw),
                        neighbors=r.get_int("neighbors", *dflt(d.neighbors), lo=1),
                        radius=r.get_float("radius", *dflt(d.radius), lo=1.0),
                        history=r.get_float("history", *dflt(d.history), lo=0.0, lo_open=True),
                        defer_g=r.get_float("defer_g", *dflt(d.defer_g), lo=0.0, hi=1.0),
-                       target=r.get_choice("target", list(REUSE_TARGETS), **({"default": d.target} if defaults else {})))
+                       target=r.get_choice("target", list(REUSE_TARGETS), **dflt_kw(d.target)),
+                       mis=r.get_choice("mis", list(REUSE_MIS), **dflt_kw(d.mis)))
         r.finish()
         return settings
 
@@ -141,7 +156,7 @@ class ReuseSettings:
     def metrics(self, g: float) -> dict[str, Any]:
         return {"reuse": self.mode, "reuse_neighbors": self.neighbors if self.mode != "none" else 0,
                 "reuse_radius": self.radius, "reuse_history": self.history, "reuse_vertex": self.vertex(g),
-                "reuse_target": self.target}
+                "reuse_target": self.target, "reuse_mis": self.mis}
 
 
 @dataclass
@@ -305,23 +320,50 @@ class ReservoirReuse:
         return Reservoirs(light, omega, W, M, rec.x, rec.d, rec.mis, rec.valid)
 
     def combine(self, inputs: list[Reservoirs], lights: LightSampler, u: Tensor) -> tuple[Reservoirs, Tensor]:
-        """Generalized RIS of ``inputs`` (``inputs[0]`` the receivers) with the generalized balance heuristic
+        """Generalized RIS of ``inputs`` (``inputs[0]`` the receivers) with the MIS weights of ``reuse.mis``
         (module docstring); returns the receivers' new reservoirs and the index of the input each kept."""
         rx = inputs[0]
         Ms = [torch.where(r.valid & rx.valid, r.M, torch.zeros_like(r.M)) for r in inputs]
-        ph = [[self.target(lights, ri.light, ri.omega, rj.x, rj.d, rj.mis) for rj in inputs] for ri in inputs]
-        ws = []
-        for i, ri in enumerate(inputs):
-            den = sum(Ms[j] * ph[i][j] for j in range(len(inputs)))
-            m_i = torch.where(den > 0, Ms[i] * ph[i][i] / den.clamp(min=1e-30), torch.zeros_like(den))
-            ws.append(m_i * ph[i][0] * ri.W)
+        p0 = [self.target(lights, ri.light, ri.omega, rx.x, rx.d, rx.mis) for ri in inputs]  # p_hat_0(y_i)
+        m = self._mis_weights(inputs, Ms, p0, lights)
+        ws = [m[i] * p0[i] * ri.W for i, ri in enumerate(inputs)]
         sel, total = _choose(ws, u)
         light, omega = _gather([r.light for r in inputs], sel), _gather([r.omega for r in inputs], sel)
-        p0 = _gather([ph[i][0] for i in range(len(inputs))], sel)
-        ok = rx.valid & (total > 0) & (p0 > 0)
-        W = torch.where(ok, total / p0.clamp(min=1e-30), torch.zeros_like(total))
+        ph = _gather(p0, sel)
+        ok = rx.valid & (total > 0) & (ph > 0)
+        W = torch.where(ok, total / ph.clamp(min=1e-30), torch.zeros_like(total))
         M = sum(Ms)
         return Reservoirs(light, omega, W, M, rx.x, rx.d, rx.mis, rx.valid), sel
+
+    def _mis_weights(self, inputs: list[Reservoirs], Ms: list[Tensor], p0: list[Tensor],
+                     lights: LightSampler) -> list[Tensor]:
+        """``m_i(y_i)`` per input: the generalized balance heuristic over every input's target (``balance``) or
+        the pairwise weights against the receiver (``pairwise``); both sum to one over the inputs for any ``y``
+        the receiver can produce and vanish where input ``i``'s target does. With two inputs they coincide."""
+        def tgt(r: Reservoirs, at: Reservoirs) -> Tensor:  # p_hat at ``at``'s vertices of r's samples
+            return self.target(lights, r.light, r.omega, at.x, at.d, at.mis)
+
+        def ratio(a: Tensor, b: Tensor) -> Tensor:
+            return torch.where(b > 0, a / b.clamp(min=1e-30), torch.zeros_like(b))
+
+        k = len(inputs)
+        if self.settings.mis == "balance" or k == 2:
+            ph = [[p0[i] if j == 0 else tgt(ri, inputs[j]) for j in range(k)] for i, ri in enumerate(inputs)]
+            return [ratio(Ms[i] * ph[i][i], sum(Ms[j] * ph[i][j] for j in range(k))) for i in range(k)]
+        # pairwise: receiver c = 0 against each neighbour i with the neighbours' confidence N = sum M_i:
+        # m_i(y) = M_i p_i(y) / (N p_i(y) + M_c p_c(y)),  m_c(y) = sum_i (M_i / N) M_c p_c(y) / (N p_i(y) + M_c p_c(y))
+        rx, mc = inputs[0], Ms[0]
+        n_nb = sum(Ms[1:])
+        at_nb = [tgt(rx, ri) for ri in inputs[1:]]  # p_hat_i(y_0)
+        m0 = torch.zeros_like(mc)
+        for i, pi in enumerate(at_nb, start=1):
+            m0 = m0 + ratio(Ms[i], n_nb) * ratio(mc * p0[0], n_nb * pi + mc * p0[0])
+        m0 = torch.where(n_nb > 0, m0, torch.ones_like(m0))
+        out = [m0]
+        for i, ri in enumerate(inputs[1:], start=1):
+            own = tgt(ri, ri)  # p_hat_i(y_i)
+            out.append(ratio(Ms[i] * own, n_nb * own + mc * p0[i]))
+        return out
 
     # ------------------------------------------------------------------ reuse
     def temporal(self, cur: Reservoirs, lights: LightSampler, gen: torch.Generator) -> tuple[Reservoirs, Tensor, Tensor]:
