@@ -6,8 +6,8 @@ the two compare); ``metrics.json`` records ``time_denoise_s``. The filter is OID
 colour (no albedo or normal buffers: a participating medium has no surface to give them). OIDN needs finite,
 non-negative input, so only its copy is cleaned (NaN/Inf and negative values to 0); the raw image is
 untouched, and :func:`clamp_bias` measures what the cleaning adds to the image mean (unbiased NRC,
-``renderer.debias``, has negative pixels; ``metrics.json``: ``denoise_clamp_bias``). An accumulated NRC run denoises its accumulated image. Deterministic for a given input on the
-same machine (OIDN's CPU device).
+``renderer.debias``, has negative pixels; ``metrics.json``: ``denoise_clamp_bias``). An accumulated NRC run
+denoises its accumulated image. Deterministic for a given input on the same machine (OIDN's CPU device).
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ def oidn_version() -> str:
 
 
 def _clean(rgb: np.ndarray) -> np.ndarray:
+    """The denoiser's copy: NaN/Inf and negative values to 0, contiguous."""
     return np.ascontiguousarray(np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0))
 
 
@@ -55,7 +56,7 @@ def clamp_bias(rgb: np.ndarray) -> float:
     rgb = np.asarray(rgb, dtype=np.float64)
     raw = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
     base = abs(raw.mean())
-    return float((raw.clip(min=0.0).mean() - raw.mean()) / base) if base > 0 else 0.0
+    return float((_clean(rgb).mean() - raw.mean()) / base) if base > 0 else 0.0
 
 
 def denoise(rgb: np.ndarray, quality: str = "high") -> np.ndarray:

@@ -274,7 +274,7 @@ def decompose_nrc(name: str, args, log) -> dict:
     images, times, t_reuse = [], [], []
 
     def on_frame(f, img, output, stats):
-        images.append(np.asarray(img.cpu() if hasattr(img, "cpu") else img).reshape(-1, 3).copy())
+        images.append(np.asarray(img).reshape(-1, 3).copy())
         times.append(stats.get("time_frame_s", float("nan")))
         t_reuse.append(stats.get("time_reuse_s", float("nan")))
 
@@ -398,12 +398,12 @@ def main() -> int:
     def log(msg: str) -> None:
         print(msg, flush=True)
 
+    meta = {"frames": args.frames, "warmup": args.warmup, "nrc_frames": args.nrc_frames,
+            "nrc_warmup": args.nrc_warmup, "ref_spp": args.ref_spp, "extra": args.extra, "code": code_version(),
+            "torch": torch.__version__, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads"}
     if args.decompose or args.decompose_nrc:
         results = [decompose_scene(s, args, log) for s in args.decompose.split(";") if s]
         nrc = [decompose_nrc(s, args, log) for s in args.decompose_nrc.split(",") if s]
-        meta = {"frames": args.frames, "warmup": args.warmup, "nrc_frames": args.nrc_frames,
-                "nrc_warmup": args.nrc_warmup, "ref_spp": args.ref_spp, "extra": args.extra, "code": code_version(),
-                "torch": torch.__version__, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads"}
         (args.out / "decompose.json").write_text(json.dumps({"meta": meta, "results": results, "nrc": nrc}, indent=1))
         md = (decompose_markdown(results, meta) if results else "") + (decompose_nrc_markdown(nrc) if nrc else "")
         (args.out / "decompose.md").write_text(md)
@@ -412,8 +412,6 @@ def main() -> int:
 
     results = [bench_scene(s, args, log) for s in args.scenes.split(",") if s]
     results += [bench_nrc(s, args, log) for s in args.nrc.split(",") if s]
-    meta = {"frames": args.frames, "warmup": args.warmup, "extra": args.extra, "code": code_version(),
-            "torch": torch.__version__, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads"}
     (args.out / "bench.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
     (args.out / "bench.md").write_text(markdown(results, meta))
     print(markdown(results, meta))

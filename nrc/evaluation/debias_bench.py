@@ -32,7 +32,7 @@ import torch
 from nrc.config import compose
 from nrc.evaluation.metrics import mean_ratio, medium_mask, rel_mse
 from nrc.evaluation.reference import REF_SEED, medium_alpha
-from nrc.evaluation.speed_vs_error import baseline_error
+from nrc.evaluation.speed_vs_error import baseline_error, nrc_run, pt_render, pt_warmup
 from nrc.scene import load_scene
 
 REPO = Path(__file__).resolve().parents[2]
@@ -87,17 +87,9 @@ def compare(ours: list[np.ndarray], theirs: list[np.ndarray], mask: np.ndarray, 
 # ---------------------------------------------------------------------------- runs
 def nrc_frames(cfg: Any, scene: Any, frames: int, seed: int, keep: range | None = None,
                accumulate: bool = False) -> tuple[list[np.ndarray], list[float], np.ndarray, dict]:
-    """Run NRC for ``frames`` frames; the frames in ``keep`` (their images, or the accumulated image of the last
-    with ``accumulate``) and their times per frame, the final output and the metrics."""
-    from omegaconf import open_dict
-
-    from nrc.render.radiance_caching import NRCRenderer
-
-    with open_dict(cfg):
-        cfg.frames = int(frames)
-        cfg.renderer.accumulate = bool(accumulate)
-        cfg.scene.integrator.seed = int(seed)
-    scene = dataclasses.replace(scene, integrator=dataclasses.replace(scene.integrator, seed=int(seed)))
+    """Run NRC for ``frames`` frames (:func:`~nrc.evaluation.speed_vs_error.nrc_run`); the frames in ``keep``
+    (their images) and their times per frame, the final output (the accumulated image with ``accumulate``) and
+    the metrics."""
     images, times = [], []
     keep = keep if keep is not None else range(0)
 
@@ -106,7 +98,7 @@ def nrc_frames(cfg: Any, scene: Any, frames: int, seed: int, keep: range | None 
             images.append(np.asarray(image, np.float64))
             times.append(float(stats["time_frame_s"]))
 
-    res = NRCRenderer(scene, cfg).render(progress=False, on_frame=on_frame)
+    res = nrc_run(scene, cfg, int(scene.integrator.spp), seed, frames, accumulate, on_frame)
     return images, times, res.image.astype(np.float64), res.metrics
 
 
@@ -146,26 +138,20 @@ def blocks(presets: dict[str, list[str]], qs: list[Any], runs: int, frames: int,
     return rows
 
 
-def orbit_camera(scene: Any, cfg: Any, frame: int) -> Any:
-    """The camera of ``frame`` under ``renderer.animate.mode=orbit`` (the NRC renderer's own rule)."""
-    from nrc.render.radiance_caching.renderer import rotation_y
+def frame_camera(scene: Any, cfg: Any, frame: int) -> Any:
+    """The camera of ``frame`` under ``renderer.animate.mode=orbit`` (the NRC renderer's rule)."""
+    from nrc.render.radiance_caching.renderer import orbit_camera
 
     if frame == 0:
         return scene.camera
-    cam = scene.camera
-    rot = rotation_y(float(cfg.renderer.animate.degrees_per_frame) * frame, scene.device)
-    centre = scene.grid.box.center
-    return dataclasses.replace(cam, position=rot @ (cam.position - centre) + centre, forward=rot @ cam.forward,
-                               right=rot @ cam.right, up=rot @ cam.up)
+    return orbit_camera(scene.camera, scene.grid.box.center, float(cfg.renderer.animate.degrees_per_frame) * frame)
 
 
 def pt_image(cfg: Any, scene: Any, spp: int, seed: int) -> tuple[np.ndarray, float]:
-    from nrc.render.pt import PathTracer
-
-    scene = dataclasses.replace(scene, integrator=dataclasses.replace(scene.integrator, spp=int(spp), seed=int(seed)))
-    t0 = time.perf_counter()
-    image = PathTracer(scene, cfg).render(progress=False).image
-    return np.nan_to_num(image).astype(np.float64), time.perf_counter() - t0
+    """A path-traced image (float64, non-finite values 0) and its wall time
+    (:func:`~nrc.evaluation.speed_vs_error.pt_render`)."""
+    image, seconds = pt_render(scene, cfg, spp, seed)
+    return image.astype(np.float64), seconds
 
 
 def moving_reference(cfg: Any, scene: Any, spp: int, chunk: int, path: Path) -> np.ndarray:
@@ -205,7 +191,7 @@ def moving(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], 
     ncfg0 = compose(["renderer=nrc", *preset, *anim])
     scene0 = load_scene(ncfg0.scene)
     scored = range(warmup, warmup + frames)
-    cams = [orbit_camera(scene0, ncfg0, f) for f in scored]
+    cams = [frame_camera(scene0, ncfg0, f) for f in scored]
     pcfg = compose(["renderer=pt", *preset, "renderer.backend=compiled"])
     pscene = load_scene(pcfg.scene)
     h = scene_hash(pcfg)[:12]
@@ -217,8 +203,7 @@ def moving(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], 
         masks.append(medium_mask(medium_alpha(s)))
         log(f"reference of frame {f}: {time.perf_counter() - t0:.1f} s")
     rows: list[dict[str, Any]] = []
-    pt_warm = dataclasses.replace(pscene, camera=dataclasses.replace(pscene.camera, width=16, height=9))
-    pt_image(pcfg, pt_warm, 1, SEED_BASE - 1)  # compile / first-use costs, untimed
+    pt_warmup(pscene, pcfg)  # compile / first-use costs, untimed
     for spp in pt_spp:
         ims, ts = [], []
         for rep in range(repeats):

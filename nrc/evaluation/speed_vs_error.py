@@ -179,10 +179,14 @@ def with_spp_seed(scene, spp: int, seed: int):
     return dataclasses.replace(scene, integrator=dataclasses.replace(scene.integrator, spp=int(spp), seed=int(seed)))
 
 
+def warmup_scene(scene):
+    """``scene`` with a 16 x 9 camera, for the untimed warm-up renders."""
+    return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=16, height=9))
+
+
 def pt_warmup(scene, cfg) -> None:
     """One untimed 16 x 9, 1-spp render: first-use costs of the ops (and of a compiled backend, if chosen)."""
-    small = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=16, height=9))
-    pt_render(small, cfg, 1, SEED_BASE - 1)
+    pt_render(warmup_scene(scene), cfg, 1, SEED_BASE - 1)
 
 
 CPU_TIMES: list[float] = []  # process CPU time of each pt_render call (all threads), read by the callers
@@ -200,8 +204,9 @@ def pt_render(scene, cfg, spp: int, seed: int) -> tuple[np.ndarray, float]:
 
 
 def nrc_run(scene, cfg, spp: int, seed: int, frames: int, accumulate: bool,
-            on_frame: Callable[[int, np.ndarray, np.ndarray, dict], None]) -> None:
-    """Run the NRC renderer for ``frames`` frames, calling ``on_frame(frame, image, accumulated, stats)``."""
+            on_frame: Callable[[int, np.ndarray, np.ndarray, dict], None]) -> Any:
+    """Run the NRC renderer for ``frames`` frames, calling ``on_frame(frame, image, accumulated, stats)``;
+    returns its :class:`~nrc.render.result.RenderResult`."""
     from omegaconf import open_dict
 
     from nrc.render.radiance_caching import NRCRenderer
@@ -210,15 +215,14 @@ def nrc_run(scene, cfg, spp: int, seed: int, frames: int, accumulate: bool,
         cfg.frames = int(frames)
         cfg.renderer.accumulate = bool(accumulate)
         cfg.scene.integrator.spp, cfg.scene.integrator.seed = int(spp), int(seed)
-    NRCRenderer(with_spp_seed(scene, spp, seed), cfg).render(progress=False, on_frame=on_frame)
+    return NRCRenderer(with_spp_seed(scene, spp, seed), cfg).render(progress=False, on_frame=on_frame)
 
 
 def nrc_warmup(scene, cfg) -> float:
     """One untimed 16 x 9, 1-frame NRC run (as :func:`pt_warmup`): the compile, or its load from the persistent
     cache, happens here, not in the first scored frame; returns its wall time (reported as ``startup_s``)."""
-    small = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=16, height=9))
     t0 = time.perf_counter()
-    nrc_run(small, cfg.copy(), 1, SEED_BASE - 1, 1, False, lambda *a: None)
+    nrc_run(warmup_scene(scene), cfg.copy(), 1, SEED_BASE - 1, 1, False, lambda *a: None)
     return time.perf_counter() - t0
 
 

@@ -79,6 +79,13 @@ def rotation_y(degrees: float, device: torch.device) -> Tensor:
     return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float32, device=device)
 
 
+def orbit_camera(camera: Camera, centre: Tensor, degrees: float) -> Camera:
+    """``camera`` orbited by ``degrees`` about world +y through ``centre`` (``animate.mode=orbit``)."""
+    rot = rotation_y(degrees, camera.position.device)
+    return replace(camera, position=rot @ (camera.position - centre) + centre, forward=rot @ camera.forward,
+                   right=rot @ camera.right, up=rot @ camera.up)
+
+
 MAX_NONFINITE_STEPS = 8  # consecutive skipped (non-finite) training steps that stop a run
 logger = logging.getLogger("nrc")
 
@@ -196,10 +203,7 @@ class NRCRenderer:
         cam = self.scene.camera
         if self.settings.animate != "orbit" or frame == 0:
             return cam
-        rot = rotation_y(self.settings.degrees_per_frame * frame, self.device)
-        centre = self.scene.grid.box.center
-        return replace(cam, position=rot @ (cam.position - centre) + centre, forward=rot @ cam.forward,
-                       right=rot @ cam.right, up=rot @ cam.up)
+        return orbit_camera(cam, self.scene.grid.box.center, self.settings.degrees_per_frame * frame)
 
     def frame_lights(self, frame: int) -> LightSampler:
         """The lights of ``frame`` (directional lights rotating about world +y with ``animate.mode=sun``)."""

@@ -38,7 +38,8 @@ import torch
 from torch import Tensor
 
 from nrc.render.wavefront.machine import MIN_SLOTS, Machine, SceneInputs
-from nrc.render.wavefront.state import CONTINUED, DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, accumulator_row
+from nrc.render.wavefront.state import (CONTINUED, DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, accumulator_row,
+                                       just_continued)
 from nrc.transport.light_sampling import LightSampler, power_heuristic
 from nrc.transport.rng import hash32
 from nrc.transport.rng import uniforms as counter_uniforms
@@ -263,7 +264,7 @@ class Wavefront:
         hv = self.harvest
         here = None  # renderer.debias: the slots continued past their cache termination at this vertex
         if hv is not None and hv.suffix_base is not None:
-            here = (Is[ly.i("never")] == CONTINUED) & (Ii[ly.i("never")] != CONTINUED)
+            here = just_continued(Ii[ly.i("never")], Is[ly.i("never")])
             c = here.nonzero().squeeze(1)
             if len(c):  # the cache's control-variate query at the vertex: weight beta (1 - 1/q)
                 Ic, beta = Ii[:, c], Fi[ly.f("beta")][:, c].T

@@ -64,7 +64,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from nrc.render.wavefront.state import CONTINUED, QUERY, Layout
+from nrc.render.wavefront.state import QUERY, Layout, just_continued
 from nrc.transport.light_sampling import LightSampler, luminance3, power_heuristic
 from nrc.transport.phase import hg_pdf
 
@@ -202,7 +202,7 @@ class VertexRecord:
         slot = (I[ly.i("pid")] if ly.nrc else I[ly.i("dest")])[idx]
         mis, scale = go[idx], torch.ones(len(idx), device=F.device)
         if self.debias_q > 0:  # continued past the cache termination here (renderer.debias)
-            cont = (Is[ly.i("never")][idx] == CONTINUED) & (I[ly.i("never")][idx] != CONTINUED)
+            cont = just_continued(I[ly.i("never")][idx], Is[ly.i("never")][idx])
             if self.indirect:
                 mis = mis & ~cont
             else:

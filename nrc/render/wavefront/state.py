@@ -57,6 +57,12 @@ _INT = ["dest", "key", "cnt", "n", "flight", "shadow", "occupied", "n_shadow_ste
 _INT_NRC = ["pid", "rec_base", "n_term", "extra", "never", "rec"]
 
 
+def just_continued(never_before: Tensor, never_after: Tensor) -> Tensor:
+    """Slots whose render path the vertex step between the two ``never`` values continued past its cache
+    termination (:data:`CONTINUED`, ``renderer.debias``)."""
+    return (never_after == CONTINUED) & (never_before != CONTINUED)
+
+
 def accumulator_row(rec_base: Tensor, n: Tensor, V: int, never: Tensor | None = None) -> Tensor:
     """Accumulator row ``(S,)`` of each slot's current segment: a training path's ``min(n, V)`` (row 0 is its
     discard row before the first vertex); for a render path 0 (its ``dest``), or 1 (its suffix row) once it is
