@@ -122,29 +122,58 @@ def bench_scene(name: str, args, log) -> dict:
     return out
 
 
+NRC_VARIANTS = {"none": ["renderer.reuse.mode=none"],
+                "spatiotemporal": ["renderer.reuse.mode=spatiotemporal"],
+                "distance_own": ["renderer.reuse.mode=spatial", "renderer.reuse.neighbors=0",
+                                 "renderer.reuse.domain=distance", "renderer.reuse.target=coarse"],
+                "distance_spatial": ["renderer.reuse.mode=spatial", "renderer.reuse.domain=distance",
+                                     "renderer.reuse.target=coarse"],
+                "distance_spatiotemporal": ["renderer.reuse.mode=spatiotemporal", "renderer.reuse.domain=distance",
+                                            "renderer.reuse.target=coarse"],
+                "distance_own_unshadowed": ["renderer.reuse.mode=spatial", "renderer.reuse.neighbors=0",
+                                            "renderer.reuse.domain=distance"],
+                "distance_spatiotemporal_unshadowed": ["renderer.reuse.mode=spatiotemporal",
+                                                       "renderer.reuse.domain=distance"]}
+
+
 def bench_nrc(name: str, args, log) -> dict:
-    """NRC frames of a static camera (the reference of :func:`bench_scene`), reuse ``none`` against
-    ``spatiotemporal``: per-frame relMSE, bias and the same after OIDN, frames after ``--nrc-warmup``."""
+    """1-spp NRC frames of a static camera (the reference of :func:`bench_scene`), one run per ``--nrc-variants``
+    entry (:data:`NRC_VARIANTS`; ``none`` first, the baseline): per-frame relMSE, bias and the same after OIDN,
+    frames after ``--nrc-warmup``; the frames' relative variance over time (per pixel, over the mean image
+    squared + 0.01, medium pixels: the noise, with the cache's drift); gains against ``none`` per frame and at
+    equal time (raw relMSE and variance scaled by the seconds per frame)."""
     from nrc.render.radiance_caching import NRCRenderer
 
     base = [*PRESETS[name], "renderer=nrc", "renderer.backend=eager", "renderer.light_selection=ris",
-            "renderer.log.tensorboard=false", f"frames={args.nrc_frames}", *args.extra]
+            "renderer.log.tensorboard=false", f"frames={args.nrc_frames}", "scene.integrator.spp=1", *args.extra]
     ref = np.load(args.out / f"ref_{name}_{args.ref_spp}.npy")
     cfg = compose(base)
     mask = medium_mask(medium_alpha(load_scene(cfg.scene)))
-    out: dict = {"scene": name, "renderer": "nrc", "overrides": base, "modes": {}}
-    for mode in ("none", "spatiotemporal"):
-        cfg = compose([*base, f"renderer.reuse.mode={mode}"])
+    shared = str(REPO.parent / "shared")  # recorded as ../shared (relative to the repo), not this machine's path
+    out: dict = {"scene": name, "renderer": "nrc", "overrides": [o.replace(shared, "../shared") for o in base],
+                 "variants": {m: NRC_VARIANTS[m] for m in args.nrc_variants.split(",")}, "modes": {}}
+    for mode in args.nrc_variants.split(","):
+        cfg = compose([*base, *NRC_VARIANTS[mode]])
         frames = []
         res = NRCRenderer(load_scene(cfg.scene), cfg).render(on_frame=lambda f, img, o, st: frames.append(img))
-        scores = [score(f, ref, mask) for f in frames[args.nrc_warmup:]]
+        kept = np.stack(frames[args.nrc_warmup:])
+        scores = [score(f, ref, mask) for f in kept]
         row = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
+        row["rel_var_frames"] = float((kept.var(0, ddof=1) / (kept.mean(0) ** 2 + 0.01))[mask].mean())
         row["seconds_per_frame"] = float(np.median(res.metrics["frame_times_s"][args.nrc_warmup:]))
+        row["seconds_reuse"] = float(np.median(res.metrics["history"].get("time_reuse_s", [0.0])[args.nrc_warmup:]
+                                               or [0.0]))
         out["modes"][mode] = row
         log(f"nrc {name} {mode}: " + ", ".join(f"{k} {v:.4g}" for k, v in row.items()))
-    st, no = out["modes"]["spatiotemporal"], out["modes"]["none"]
-    st["gain_raw_equal_time"] = no["rel_mse"] * no["seconds_per_frame"] / (st["rel_mse"] * st["seconds_per_frame"])
-    st["gain_oidn_per_frame"] = no["rel_mse_oidn"] / st["rel_mse_oidn"]
+    no = out["modes"].get("none")
+    for mode, st in out["modes"].items():
+        if no is None or mode == "none":
+            continue
+        speed = no["seconds_per_frame"] / st["seconds_per_frame"]
+        st["gain_raw_per_frame"] = no["rel_mse"] / st["rel_mse"]
+        st["gain_raw_equal_time"] = st["gain_raw_per_frame"] * speed
+        st["gain_oidn_per_frame"] = no["rel_mse_oidn"] / st["rel_mse_oidn"]
+        st["gain_variance_equal_time"] = no["rel_var_frames"] / st["rel_var_frames"] * speed
     return out
 
 
@@ -360,7 +389,10 @@ def markdown(results: list[dict], meta: dict) -> str:
              f"{meta['machine']}; torch {meta['torch']}; code {meta['code']}; extra: {' '.join(meta['extra']) or '-'}", "",
              "| scene | mode | s/frame | relMSE | mean/ref | FLIP | relMSE OIDN | mean/ref OIDN | FLIP OIDN | "
              "equal-time gain raw | equal-time gain OIDN |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    nrc = [r for r in results if r.get("renderer") == "nrc"]
     for r in results:
+        if r in nrc:
+            continue
         for mode, row in r["modes"].items():
             g1 = row.get("gain_raw_equal_time")
             if "gain_oidn_per_frame" in row:  # nrc: no equal-time none render
@@ -373,6 +405,20 @@ def markdown(results: list[dict], meta: dict) -> str:
                          f"{row['rel_mse']:.4g} | {row['mean_ratio']:.4f} | {row['flip']:.4f} | "
                          f"{row['rel_mse_oidn']:.4g} | {row['mean_ratio_oidn']:.4f} | {row['flip_oidn']:.4f} | "
                          f"{'-' if g1 is None else f'{g1:.2f}x'} | {g2} |")
+    if nrc:
+        lines += ["", f"## NRC, 1-spp frames of a static camera ({meta['nrc_frames']} frames, first "
+                  f"{meta['nrc_warmup']} left out; gains against `none`)", "",
+                  "| scene | variant | s/frame | reuse pass s | relMSE | mean/ref | relMSE OIDN | mean/ref OIDN | "
+                  "relVar over frames | gain relMSE per frame / equal time | gain relVar equal time | "
+                  "gain relMSE OIDN per frame |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in nrc:
+            for mode, row in r["modes"].items():
+                g = (f"{row['gain_raw_per_frame']:.2f}x / {row['gain_raw_equal_time']:.2f}x | "
+                     f"{row['gain_variance_equal_time']:.2f}x | {row['gain_oidn_per_frame']:.2f}x"
+                     if "gain_raw_per_frame" in row else "- | - | -")
+                lines.append(f"| {r['scene']} | {mode} | {row['seconds_per_frame']:.3f} | {row['seconds_reuse']:.3f} | "
+                             f"{row['rel_mse']:.4g} | {row['mean_ratio']:.4f} | {row['rel_mse_oidn']:.4g} | "
+                             f"{row['mean_ratio_oidn']:.4f} | {row['rel_var_frames']:.4g} | {g} |")
     return "\n".join(lines) + "\n"
 
 
@@ -386,6 +432,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "bench_reuse")
     ap.add_argument("--extra", nargs="*", default=[])
     ap.add_argument("--nrc", default="", help="scene types to run NRC frames on too (static camera)")
+    ap.add_argument("--nrc-variants", default="none,spatiotemporal",
+                    help=f"--nrc runs, comma-separated, none first: {', '.join(NRC_VARIANTS)}")
     ap.add_argument("--nrc-frames", type=int, default=16)
     ap.add_argument("--nrc-warmup", type=int, default=8)
     ap.add_argument("--decompose", default="", help="scene types (name or name:override,override; ';' between "

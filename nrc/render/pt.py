@@ -47,7 +47,7 @@ from nrc.render.result import RenderResult
 from nrc.render.wavefront import BACKENDS, build_core, camera_paths
 from nrc.render.wavefront.driver import Wavefront
 from nrc.render.wavefront.machine import compiled_graphs
-from nrc.render.wavefront.reuse import ReservoirReuse, ReuseSettings, VertexRecord
+from nrc.render.wavefront.reuse import ReuseSettings, VertexRecord, make_reuse
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSamplingSettings
 from nrc.transport.rng import path_key, uniforms
@@ -135,7 +135,7 @@ class PathTracer:
                                st.brick, st.free_flight, st.backend, st.steps_per_call, st.compile_min_samples,
                                st.rr_start if st.russian_roulette else None,
                                point_lights=st.light_sampling.equiangular_points(scene),
-                               reuse_vertex=st.reuse.vertex(scene.g))
+                               reuse_vertex=st.reuse.vertex(scene.g), reuse_light_only=st.reuse.light_only)
         self.majorants = self.core.majorants
 
     def _camera_paths(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -207,12 +207,13 @@ class PathTracer:
         wavefront with the counters of all of them."""
         cam, spp, st = self.scene.camera, self.spp, self.settings
         n = cam.num_pixels
-        reuse = ReservoirReuse(st.reuse, self.scene.g, 1, self.scene.grid)
+        reuse = make_reuse(st.reuse, self.scene.g, 1, self.scene.grid, self.scene.albedo)
         counts: dict[str, int] = {}
         timers: dict[str, float] = {}
         wf = None
         for j in range(spp):
-            rec = VertexRecord.empty(n, st.reuse.vertex(self.scene.g), self.scene.albedo, False, self.device)
+            rec = None if st.reuse.light_only else \
+                VertexRecord.empty(n, st.reuse.vertex(self.scene.g), self.scene.albedo, False, self.device)
             wf = self._wavefront(machine, gen, rec)
             one = torch.zeros_like(image)
             wf.run(n, lambda r, j=j: self._camera_paths(r * spp + j), one, on_done=bar.update)

@@ -150,7 +150,7 @@ class NRCPathTracer:
                  free_flight: str = "brick", backend: str = "eager", steps_per_call: int = 1,
                  compile_min_samples: int = 0, cache_target: str = "full",
                  light_sampling: LightSamplingSettings = LightSamplingSettings(), reuse_vertex: int = 0,
-                 debias: bool = False) -> None:
+                 debias: bool = False, reuse_light_only: bool = False) -> None:
         self.scene = scene
         self.device = scene.device
         self.transmittance = transmittance
@@ -162,6 +162,8 @@ class NRCPathTracer:
         self.cache_target = cache_target
         self.light_sampling = light_sampling
         self.reuse_vertex = reuse_vertex  # render paths' vertex recorded for reservoir reuse (0: none)
+        # reuse.domain=distance: that vertex's direct light is all the reuse pass's, which needs no record
+        self.reuse_light_only = reuse_light_only
         self.debias = debias  # renderer.debias: render paths may go on past their cache termination (q per frame)
         self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples)
         self._cores: dict = {}
@@ -177,7 +179,8 @@ class NRCPathTracer:
                 s.grid, self.light_sampling.sampler(s), s.albedo, s.g, s.integrator.max_scatter,
                 self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V, self.cache_target, self.debias),
                 termination=self.termination, uniforms=uniforms, inline_shadows=False,
-                point_lights=self.light_sampling.equiangular_points(s), reuse_vertex=self.reuse_vertex)
+                point_lights=self.light_sampling.equiangular_points(s), reuse_vertex=self.reuse_vertex,
+                reuse_light_only=self.reuse_light_only)
             self._cores[uniforms].warm_fraction = 1 / 12  # see Core.warm_fraction
         return self._cores[uniforms]
 
@@ -234,7 +237,8 @@ class NRCPathTracer:
                      debias_q=debias_q if self.debias else 0.0, suffix_base=suffix_base, debias_indirect=indirect)
         shadow = core.shadow_queue(machine, self.shadow_batch, rng.generator)
         rec = VertexRecord.empty(ps.n_render, self.reuse_vertex, self.scene.albedo, indirect, dev,
-                                 debias_q if self.debias else 0.0) if self.reuse_vertex else None
+                                 debias_q if self.debias else 0.0) \
+            if self.reuse_vertex and not self.reuse_light_only else None
         wf = Wavefront(machine, core.inputs_for(lights, debias_q), lights, self.slots, shadow, hv,
                        core.equiangular_queue(self.shadow_batch, rng.generator), reuse=rec)
         layout = machine.step.layout

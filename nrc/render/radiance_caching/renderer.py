@@ -61,7 +61,7 @@ from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 from nrc.transport.rng import RandomSource
 from nrc.render.wavefront.machine import compiled_graphs
-from nrc.render.wavefront.reuse import ReservoirReuse
+from nrc.render.wavefront.reuse import make_reuse
 from nrc.render.radiance_caching.training_set import (auto_training_size, frame_records, medium_pixels,
                                                       training_positions, training_targets)
 from nrc.scene import Scene
@@ -166,9 +166,9 @@ class NRCRenderer:
         self.tracer = NRCPathTracer(scene, self.transmittance, st.termination, tr.records_per_path,
                                     tr.extra_vertices, st.slots, st.shadow_batch, st.brick, st.free_flight,
                                     st.backend, st.steps_per_call, st.compile_min_samples, st.cache_target,
-                                    st.light_sampling, st.reuse.vertex(scene.g), st.debias.enabled)
-        self.reuse = ReservoirReuse(st.reuse, scene.g, scene.integrator.spp, scene.grid) \
-            if st.reuse.mode != "none" else None
+                                    st.light_sampling, st.reuse.vertex(scene.g), st.debias.enabled,
+                                    st.reuse.light_only)
+        self.reuse = make_reuse(st.reuse, scene.g, scene.integrator.spp, scene.grid, scene.albedo)
         self.tracer.frames = self.frames
         self.lights = st.light_sampling.sampler(scene)
         self.reference = self._load_reference(st.reference)

@@ -116,6 +116,9 @@ class NRCSettings:
         t = settings.training
         if t.min_paths > t.max_paths:
             raise ConfigError(f"renderer.training.min_paths={t.min_paths} exceeds max_paths={t.max_paths}")
+        if settings.reuse.light_only and settings.cache_target != "indirect":
+            raise ConfigError("renderer.reuse.domain=distance needs renderer.cache_target=indirect (with full, a path "
+                              "terminating at its first vertex counts that vertex's direct light in the cache's answer)")
         if settings.accumulate and settings.animate != "none":
             raise ConfigError(f"renderer.accumulate=true averages the frames of a static scene; it cannot be used "
                               f"with renderer.animate.mode={settings.animate}")

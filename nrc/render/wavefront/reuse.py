@@ -51,14 +51,21 @@ receiver's phase pdf, as the escape side uses), so the two halves still sum to t
 incoming direction, is nearly worthless there; reuse then starts at vertex 2 (``R = 2``; the first vertex
 keeps its own next-event estimate).
 
-Memory: ``~30`` floats a sample slot (``width x height x spp``) for the record, the reservoirs and the history.
+**Distance reuse** (``reuse.domain=distance``, :class:`DistanceReuse`): a reservoir holds a pair ``(t, y)``, a
+distance along the pixel's camera ray and a light sample, as Lin et al. 2021 resample the camera ray's single
+scattering; the steps above are the same (the pair moves to another pixel's ray at the same ``t``), and the
+render paths' first vertex leaves all of its direct light to this pass. ``reuse.neighbors=0`` skips spatial
+reuse (each pixel's own RIS: the baseline of what reuse adds).
+
+Memory: ``~30`` floats a sample slot (``width x height x spp``) for the record, the reservoirs and the history;
+``~75`` with ``domain=distance`` (each ray's ``32``-step coarse table).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import torch
@@ -71,6 +78,7 @@ from nrc.transport.phase import hg_pdf
 REUSE_MODES = ("none", "spatial", "spatiotemporal")
 REUSE_TARGETS = ("unshadowed", "coarse")
 REUSE_MIS = ("pairwise", "balance")
+REUSE_DOMAINS = ("light", "distance")
 
 
 class CoarseTransmittance:
@@ -96,12 +104,16 @@ class CoarseTransmittance:
         """``T`` ``(N,)`` from ``x`` along unit ``wi`` over ``[0, t1]`` (``(N, 3)``, ``(N, 3)``, ``(N,)``)."""
         t = (torch.arange(self.steps, device=x.device, dtype=x.dtype) + 0.5) / self.steps
         p = x[:, None, :] + (t[None, :, None] * t1[:, None, None]) * wi[:, None, :]  # (N, S, 3)
+        tau = self.sigma_at(p).sum(1) * t1 / self.steps
+        return torch.exp(-tau)
+
+    def sigma_at(self, p: Tensor) -> Tensor:
+        """The averaged extinction of the cells holding points ``p`` ``(..., 3)`` (0 outside the box)."""
         s = (p - self.lo) / self.extent
         inside = ((s >= 0) & (s < 1)).all(-1)
         c = torch.minimum((s.clamp(min=0.0) * self.size).long(), self.size - 1)
         flat = (c[..., 0] * self.size[1] + c[..., 1]) * self.size[2] + c[..., 2]
-        tau = torch.where(inside, self.sigma[flat], torch.zeros_like(t1[:, None])).sum(1) * t1 / self.steps
-        return torch.exp(-tau)
+        return torch.where(inside, self.sigma[flat], torch.zeros_like(p[..., 0]))
 
 
 @dataclass(frozen=True)
@@ -111,8 +123,9 @@ class ReuseSettings:
     mode: str = "none"
     """``none`` | ``spatial`` | ``spatiotemporal`` (module docstring)."""
     neighbors: int = 4
-    """Spatial neighbours ``K`` combined per pixel (``>= 1``; the combination costs ``3K + 1`` target
-    evaluations with ``mis=pairwise``, ``(K + 1)^2`` with ``balance``)."""
+    """Spatial neighbours ``K`` combined per pixel (``>= 0``; the combination costs ``3K + 1`` target
+    evaluations with ``mis=pairwise``, ``(K + 1)^2`` with ``balance``). ``0``: no spatial reuse (``spatial``
+    is then each pixel's own RIS, the baseline that shows what reuse adds)."""
     radius: float = 10.0
     """Spatial neighbours are drawn uniformly in a ring of 1 to ``radius`` pixels (``>= 1``)."""
     history: float = 20.0
@@ -128,6 +141,14 @@ class ReuseSettings:
     inputs, ``(K + 1)^2`` target evaluations) or ``pairwise`` (each neighbour against the receiver, ``3K + 1``).
     Temporal reuse (two inputs): the same. ``balance`` is the default by measurement (``docs/path_tracer.md``)."""
 
+    domain: str = "light"
+    """What a reservoir holds: ``light`` (a light sample ``y`` for the pixel's own first vertex, which delta
+    tracking placed) or ``distance`` (a pair ``(t, y)``: a distance along the pixel's camera ray and a light
+    sample, Lin et al. 2021; the camera ray's single scattering of the sampled lights is then estimated by
+    the reservoirs alone, see :class:`DistanceReuse`)."""
+    distance_candidates: int = 8
+    """``domain=distance``: candidate pairs ``(t, y)`` per pixel in the initial RIS (``>= 1``)."""
+
     @classmethod
     def from_config(cls, cfg: Any, defaults: bool = False) -> ReuseSettings:
         """Read the ``reuse`` block of a :class:`nrc.config.ConfigReader` of the ``renderer`` block
@@ -138,12 +159,14 @@ class ReuseSettings:
         dflt_kw = (lambda v: {"default": v}) if defaults else (lambda v: {})  # noqa: E731
         kw = dflt_kw(d.mode)
         settings = cls(mode=r.get_choice("mode", list(REUSE_MODES), **kw),
-                       neighbors=r.get_int("neighbors", *dflt(d.neighbors), lo=1),
+                       neighbors=r.get_int("neighbors", *dflt(d.neighbors), lo=0),
                        radius=r.get_float("radius", *dflt(d.radius), lo=1.0),
                        history=r.get_float("history", *dflt(d.history), lo=0.0, lo_open=True),
                        defer_g=r.get_float("defer_g", *dflt(d.defer_g), lo=0.0, hi=1.0),
                        target=r.get_choice("target", list(REUSE_TARGETS), **dflt_kw(d.target)),
-                       mis=r.get_choice("mis", list(REUSE_MIS), **dflt_kw(d.mis)))
+                       mis=r.get_choice("mis", list(REUSE_MIS), **dflt_kw(d.mis)),
+                       domain=r.get_choice("domain", list(REUSE_DOMAINS), **dflt_kw(d.domain)),
+                       distance_candidates=r.get_int("distance_candidates", *dflt(d.distance_candidates), lo=1))
         r.finish()
         return settings
 
@@ -151,12 +174,21 @@ class ReuseSettings:
         """The render paths' vertex whose next-event estimate is reused (0: none)."""
         if self.mode == "none":
             return 0
+        if self.domain == "distance":  # the camera ray's single scattering: always the first vertex's
+            return 1
         return 2 if abs(float(g)) >= self.defer_g else 1
+
+    @property
+    def light_only(self) -> bool:
+        """The reuse vertex's direct light is estimated by light sampling alone (``domain=distance``): the path's
+        phase-sampled direction from it does not count the environment it reaches (no MIS there)."""
+        return self.mode != "none" and self.domain == "distance"
 
     def metrics(self, g: float) -> dict[str, Any]:
         return {"reuse": self.mode, "reuse_neighbors": self.neighbors if self.mode != "none" else 0,
                 "reuse_radius": self.radius, "reuse_history": self.history, "reuse_vertex": self.vertex(g),
-                "reuse_target": self.target, "reuse_mis": self.mis}
+                "reuse_target": self.target, "reuse_mis": self.mis, "reuse_domain": self.domain,
+                "reuse_distance_candidates": self.distance_candidates if self.domain == "distance" else 0}
 
 
 @dataclass
@@ -214,8 +246,28 @@ class VertexRecord:
         self.valid[slot] = True
 
 
+class _Rows:
+    """Row-wise tensors of a dataclass: ``take`` rows, ``state_dict`` / ``from_state`` for checkpoints."""
+
+    SAMPLE: tuple[str, ...] = ()  # the fields that make up the kept sample (moved by resampling)
+
+    def take(self, idx: Tensor) -> Any:
+        return type(self)(*(getattr(self, f.name)[idx] for f in fields(self)))
+
+    def state_dict(self) -> dict[str, Tensor]:
+        return {f.name: getattr(self, f.name).cpu() for f in fields(self)}
+
+    @classmethod
+    def from_state(cls, state: dict[str, Tensor], device: torch.device) -> Any:
+        return cls(**{f.name: state[f.name].to(device) for f in fields(cls)})
+
+    def resampled(self, inputs: list, sel: Tensor, W: Tensor, M: Tensor) -> Any:
+        """These receivers with the sample of ``inputs[sel]`` (row-wise), weight ``W`` and confidence ``M``."""
+        return replace(self, W=W, M=M, **{k: _gather([getattr(r, k) for r in inputs], sel) for k in self.SAMPLE})
+
+
 @dataclass
-class Reservoirs:
+class Reservoirs(_Rows):
     """One reservoir per sample slot: the kept sample ``(light (N,) int64, omega (N, 3))``, its unbiased
     contribution weight ``W`` and confidence ``M`` (``(N,)``), and the vertex it belongs to (``x``, ``d``,
     ``mis``, ``valid``)."""
@@ -228,16 +280,12 @@ class Reservoirs:
     d: Tensor
     mis: Tensor
     valid: Tensor
+    SAMPLE = ("light", "omega")
 
-    def take(self, idx: Tensor) -> Reservoirs:
-        return Reservoirs(*(getattr(self, f.name)[idx] for f in fields(self)))
-
-    def state_dict(self) -> dict[str, Tensor]:
-        return {f.name: getattr(self, f.name).cpu() for f in fields(self)}
-
-    @classmethod
-    def from_state(cls, state: dict[str, Tensor], device: torch.device) -> Reservoirs:
-        return cls(**{f.name: state[f.name].to(device) for f in fields(cls)})
+    @property
+    def anchor(self) -> Tensor:
+        """The world point temporal reuse projects into the previous camera."""
+        return self.x
 
 
 def _choose(ws: list[Tensor], u: Tensor) -> tuple[Tensor, Tensor]:
@@ -264,6 +312,8 @@ class ReservoirReuse:
         spp: sample slots per pixel.
         grid: the density grid (the box for the targets' rays; the ``coarse`` target's density).
     """
+
+    RESERVOIRS: type = Reservoirs
 
     def __init__(self, settings: ReuseSettings, g: float, spp: int, grid: Any) -> None:
         self.settings, self.g, self.spp, self.grid = settings, float(g), int(spp), grid
@@ -324,16 +374,22 @@ class ReservoirReuse:
         (module docstring); returns the receivers' new reservoirs and the index of the input each kept."""
         rx = inputs[0]
         Ms = [torch.where(r.valid & rx.valid, r.M, torch.zeros_like(r.M)) for r in inputs]
-        p0 = [self.target(lights, ri.light, ri.omega, rx.x, rx.d, rx.mis) for ri in inputs]  # p_hat_0(y_i)
+        p0 = [self.target_at(lights, ri, rx) for ri in inputs]  # p_hat_0(y_i)
         m = self._mis_weights(inputs, Ms, p0, lights)
         ws = [m[i] * p0[i] * ri.W for i, ri in enumerate(inputs)]
         sel, total = _choose(ws, u)
-        light, omega = _gather([r.light for r in inputs], sel), _gather([r.omega for r in inputs], sel)
         ph = _gather(p0, sel)
         ok = rx.valid & (total > 0) & (ph > 0)
         W = torch.where(ok, total / ph.clamp(min=1e-30), torch.zeros_like(total))
-        M = sum(Ms)
-        return Reservoirs(light, omega, W, M, rx.x, rx.d, rx.mis, rx.valid), sel
+        return rx.resampled(inputs, sel, W, sum(Ms)), sel
+
+    def target_at(self, lights: LightSampler, r: Reservoirs, at: Reservoirs) -> Tensor:
+        """``p_hat`` ``(N,)`` at ``at``'s vertices of ``r``'s samples (row-wise)."""
+        return self.target(lights, r.light, r.omega, at.x, at.d, at.mis)
+
+    def candidates(self, lights: LightSampler) -> int:
+        """The initial RIS's candidates (the unit of the temporal history clamp)."""
+        return lights.candidates
 
     def _mis_weights(self, inputs: list[Reservoirs], Ms: list[Tensor], p0: list[Tensor],
                      lights: LightSampler) -> list[Tensor]:
@@ -341,7 +397,7 @@ class ReservoirReuse:
         the pairwise weights against the receiver (``pairwise``); both sum to one over the inputs for any ``y``
         the receiver can produce and vanish where input ``i``'s target does. With two inputs they coincide."""
         def tgt(r: Reservoirs, at: Reservoirs) -> Tensor:  # p_hat at ``at``'s vertices of r's samples
-            return self.target(lights, r.light, r.omega, at.x, at.d, at.mis)
+            return self.target_at(lights, r, at)
 
         def ratio(a: Tensor, b: Tensor) -> Tensor:
             return torch.where(b > 0, a / b.clamp(min=1e-30), torch.zeros_like(b))
@@ -370,11 +426,11 @@ class ReservoirReuse:
         """Combine with the previous frame's reservoir of the pixel the vertex projects to (step 2); returns
         the new reservoirs, the mask of vertices that found a history and the kept input's index."""
         n, dev = len(cur.W), cur.W.device
-        pix, inside = self.prev_camera.project(cur.x)
+        pix, inside = self.prev_camera.project(cur.anchor)
         slot = pix * self.spp + torch.arange(n, device=dev) % self.spp
         prev = self.prev.take(slot)
         prev.valid = prev.valid & inside & cur.valid
-        prev.M = torch.minimum(prev.M, torch.full_like(prev.M, self.settings.history * lights.candidates))
+        prev.M = torch.minimum(prev.M, torch.full_like(prev.M, self.settings.history * self.candidates(lights)))
         out, sel = self.combine([cur, prev], lights, torch.rand(n, generator=gen, device=dev))
         return out, prev.valid, sel
 
@@ -423,35 +479,248 @@ class ReservoirReuse:
             out[i] = rec.beta[i] * c * (w * T)[:, None]
         return out
 
-    def frame(self, rec: VertexRecord, camera: Any, lights: LightSampler, transmittance: Any, grid: Any,
+    def frame(self, rec: VertexRecord | None, camera: Any, lights: LightSampler, transmittance: Any, grid: Any,
               majorants: Any, gen: torch.Generator, batch: int) -> tuple[Tensor, dict[str, Any]]:
         """The reuse pass of a frame: ``(contribution (N, 3) per sample slot, counters)``; with
-        ``spatiotemporal`` the frame's final reservoirs become the next frame's history."""
+        ``spatiotemporal`` the frame's final reservoirs become the next frame's history. ``rec``: the recorded
+        vertices (``domain=light``; :class:`DistanceReuse` draws its own camera rays through ``camera`` and
+        takes none)."""
         t0 = time.perf_counter()
         mode = self.settings.mode
         if lights.n_lights == 0:  # nothing to sample (every light equi-angular, or none)
-            return torch.zeros(rec.n, 3, device=rec.x.device), {"reuse_vertices": int(rec.valid.sum()),
-                                                                 "time_reuse_s": time.perf_counter() - t0}
-        cur = self.initial(rec, lights, gen)
-        n_valid = max(int(rec.valid.sum()), 1)
-        stats: dict[str, Any] = {"reuse_vertices": int(rec.valid.sum())}
-        if mode == "spatiotemporal" and self.prev is not None and len(self.prev.W) == rec.n:
+            n = rec.n if rec is not None else camera.num_pixels * self.spp
+            valid = int(rec.valid.sum()) if rec is not None else 0
+            return torch.zeros(n, 3, device=grid.device), {"reuse_vertices": valid,
+                                                           "time_reuse_s": time.perf_counter() - t0}
+        cur = self._initial(rec, camera, lights, gen)
+        valid = cur.valid
+        n_valid = max(int(valid.sum()), 1)
+        stats: dict[str, Any] = {"reuse_vertices": int(valid.sum())}
+        if mode == "spatiotemporal" and self.prev is not None and len(self.prev.W) == len(cur.W):
             cur, hist, sel = self.temporal(cur, lights, gen)
             stats["reuse_temporal_found"] = int(hist.sum()) / n_valid
             stats["reuse_temporal_accept"] = int((hist & (sel == 1)).sum()) / n_valid
-        cur, sel = self.spatial(cur, camera, lights, gen)
-        stats["reuse_spatial_accept"] = int((rec.valid & (sel > 0)).sum()) / n_valid
-        stats["reuse_mean_m"] = float(cur.M[rec.valid].mean()) if bool(rec.valid.any()) else 0.0
+        if self.settings.neighbors:
+            cur, sel = self.spatial(cur, camera, lights, gen)
+            stats["reuse_spatial_accept"] = int((valid & (sel > 0)).sum()) / n_valid
+        stats["reuse_mean_m"] = float(cur.M[valid].mean()) if bool(valid.any()) else 0.0
         if mode == "spatiotemporal":
             self.prev, self.prev_camera = cur, camera
         out = self.shade(cur, rec, lights, transmittance, grid, majorants, gen, batch)
         stats["time_reuse_s"] = time.perf_counter() - t0
         return out, stats
 
+    def _initial(self, rec: VertexRecord | None, camera: Any, lights: LightSampler,
+                 gen: torch.Generator) -> Reservoirs:
+        return self.initial(rec, lights, gen)
+
     def state_dict(self) -> dict[str, Any] | None:
         """The history (``None`` without one) for a checkpoint; the caller restores ``prev_camera``."""
         return None if self.prev is None else self.prev.state_dict()
 
     def load_state_dict(self, state: dict[str, Any] | None, camera: Any, device: torch.device) -> None:
-        self.prev = None if state is None else Reservoirs.from_state(state, device)
+        self.prev = None if state is None else self.RESERVOIRS.from_state(state, device)
         self.prev_camera = camera if state is not None else None
+
+
+@dataclass
+class DistanceReservoirs(_Rows):
+    """``domain=distance``: one reservoir per sample slot holding a pair ``(t, y)``: the distance ``t`` ``(N,)``
+    along the slot's camera ray and the light sample ``(light, omega)``; ``W``, ``M`` as :class:`Reservoirs`;
+    the camera ray (``o``, ``d`` ``(N, 3)``; ``ta``, ``tb`` ``(N,)`` its span in the box) and its coarse
+    extinction ``sig`` ``(N, S)`` in ``S`` equal steps over ``[ta, tb]`` (the targets' transmittance and the
+    distance sampling); ``valid``: the ray crosses the box."""
+
+    t: Tensor
+    light: Tensor
+    omega: Tensor
+    W: Tensor
+    M: Tensor
+    o: Tensor
+    d: Tensor
+    ta: Tensor
+    tb: Tensor
+    sig: Tensor
+    valid: Tensor
+    SAMPLE = ("t", "light", "omega")
+
+    @property
+    def anchor(self) -> Tensor:
+        """The kept sample's point: temporal reuse finds the previous frame's pixel through it."""
+        return self.o + self.t[:, None] * self.d
+
+    def tau(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Along these rays at distances ``t`` ``(N,)``: the coarse optical depth from ``ta``, the coarse
+        extinction there, and whether ``t`` lies in ``[ta, tb]`` of a valid ray."""
+        sig = self.sig
+        S = sig.shape[1]
+        span = (self.tb - self.ta).clamp(min=1e-30)
+        h = span / S
+        k = torch.floor((t - self.ta) / h).clamp(0, S - 1).long()
+        cum = torch.cumsum(sig, 1) * h[:, None]
+        rows = torch.arange(len(t), device=t.device)
+        sig_k = sig[rows, k]
+        before = cum[rows, k] - sig_k * h
+        tau = before + sig_k * (t - self.ta - k.to(t.dtype) * h)
+        inside = self.valid & (t >= self.ta) & (t <= self.tb)
+        return tau, sig_k, inside
+
+    def total(self) -> Tensor:
+        """The coarse optical depth of the whole span ``(N,)``."""
+        return self.sig.sum(1) * (self.tb - self.ta) / self.sig.shape[1]
+
+
+class DistanceReuse(ReservoirReuse):
+    """Reuse of ``(distance, light)`` pairs on the camera rays (``renderer.reuse.domain=distance``; Lin, Wyman
+    and Yuksel 2021, with the generalized RIS of the module docstring).
+
+    The pixel's single scattering of the sampled lights, ``I = int_ta^tb T(ta, t) sigma_s(x_t) int
+    p(d, wi) L(x_t, wi) T(x_t -> y) dy dt`` along its camera ray ``x_t = o + t d``, is estimated by this pass
+    alone; the render path's first vertex does no next-event estimate of those lights and its phase-sampled
+    direction does not count the environment it reaches (:attr:`ReuseSettings.light_only`; the camera ray's
+    escape and the rest of the path stay the path's). The direct light of the first vertex is thus resampled
+    over where the vertex is, not only over which light: reuse spreads good distances across pixels, which the
+    ``light`` domain cannot.
+
+    - **Samples.** ``z = (t, y)``; a pair shifts to another pixel's camera ray at the same ``t`` (the measure
+      ``dt x dy`` is the same on every ray: no Jacobian), the light sample as in the ``light`` domain.
+    - **Source.** ``t`` from the coarse extinction ``sig`` along the ray (:class:`CoarseTransmittance`'s
+      cell averages in :attr:`STEPS` equal steps; pdf ``sig(t) exp(-tau(t)) / (1 - exp(-tau_total))``) mixed
+      with a uniform share :attr:`UNIFORM` over ``[ta, tb]`` (positive wherever the medium can be), then one
+      light sample at ``x_t`` from ``renderer.light_selection``; ``distance_candidates`` such pairs.
+    - **Target.** ``p_hat(t, y) = sigma_s(x_t) exp(-tau(t)) luminance(L) HG`` (times the coarse
+      transmittance towards the light with ``target=coarse``): the integrand without the two visibilities.
+      No MIS against phase sampling (the light sampling covers the whole of ``I``).
+    - **Shading.** ``sigma_s(x_t) T(ta, t) HG L T(x_t -> y) W`` with both transmittances estimated by the
+      configured estimator (unbiased), added to the slot.
+
+    Needs ``cache_target=indirect`` under ``nrc`` (with ``full`` a path terminating at its first vertex would
+    count that vertex's direct light in the cache's answer too).
+    """
+
+    RESERVOIRS = DistanceReservoirs
+    STEPS = 32
+    UNIFORM = 0.25
+
+    def __init__(self, settings: ReuseSettings, g: float, spp: int, grid: Any, albedo: float) -> None:
+        super().__init__(settings, g, spp, grid)
+        self.albedo = float(albedo)
+        self.march = self.coarse if self.coarse is not None else CoarseTransmittance(grid)
+
+    def candidates(self, lights: LightSampler) -> int:
+        return self.settings.distance_candidates
+
+    # ------------------------------------------------------------------ rays, distances, targets
+    def rays(self, camera: Any, n: int, gen: torch.Generator) -> DistanceReservoirs:
+        """Empty reservoirs on ``n`` jittered camera rays (slot ``pixel x spp + j``) with their coarse tables."""
+        dev = self.grid.device
+        ids = torch.arange(n, device=dev)
+        pix = torch.div(ids, self.spp, rounding_mode="floor")
+        o, d = camera.generate_rays(pix, torch.rand(n, 2, generator=gen, device=dev))
+        o, d = o.contiguous(), d.contiguous()
+        ta, tb = self.grid.box.intersect(o, d)
+        ta = ta.clamp(min=0.0)
+        valid = tb > ta
+        tb = torch.where(valid, tb, ta)
+        frac = (torch.arange(self.STEPS, device=dev, dtype=o.dtype) + 0.5) / self.STEPS
+        tm = ta[:, None] + frac[None, :] * (tb - ta)[:, None]
+        sig = self.march.sigma_at(o[:, None, :] + tm[..., None] * d[:, None, :])
+        z = torch.zeros(n, device=dev)
+        return DistanceReservoirs(z, torch.zeros(n, dtype=torch.long, device=dev), torch.zeros(n, 3, device=dev),
+                                  z.clone(), z.clone(), o, d, ta, tb, sig, valid)
+
+    def _mix(self, r: DistanceReservoirs) -> Tensor:
+        """The exponential share of the distance source (none on a ray whose coarse depth is 0)."""
+        return torch.where(r.total() > 1e-6, torch.full_like(r.ta, 1.0 - self.UNIFORM), torch.zeros_like(r.ta))
+
+    def distance_pdf(self, r: DistanceReservoirs, t: Tensor) -> Tensor:
+        """The source pdf ``(N,)`` of distances ``t`` on rays ``r`` (0 outside ``[ta, tb]``)."""
+        tau, sig_k, inside = r.tau(t)
+        a = self._mix(r)
+        norm = (-torch.expm1(-r.total())).clamp(min=1e-30)
+        p = a * sig_k * torch.exp(-tau) / norm + (1.0 - a) / (r.tb - r.ta).clamp(min=1e-30)
+        return torch.where(inside, p, torch.zeros_like(p))
+
+    def sample_distance(self, r: DistanceReservoirs, u0: Tensor, u1: Tensor) -> Tensor:
+        """Distances ``(N,)`` on rays ``r`` from the source (``u0`` picks the part, ``u1`` inverts it)."""
+        S = self.STEPS
+        span = r.tb - r.ta
+        h = span / S
+        uniform = r.ta + u1 * span
+        target = -torch.log1p(-u1 * (-torch.expm1(-r.total())))  # optical depth of the exponential part
+        cum = torch.cumsum(r.sig, 1) * h[:, None]
+        k = torch.searchsorted(cum.contiguous(), target[:, None].contiguous(), right=True)[:, 0].clamp(max=S - 1)
+        rows = torch.arange(len(u0), device=u0.device)
+        sig_k = r.sig[rows, k]
+        into = (target - (cum[rows, k] - sig_k * h)) / sig_k.clamp(min=1e-30)
+        expo = r.ta + k.to(u1.dtype) * h + into.clamp(min=0.0).minimum(h)
+        return torch.where(u0 < self._mix(r), expo, uniform).clamp(min=r.ta, max=r.tb)
+
+    def _dtarget(self, lights: LightSampler, t: Tensor, light: Tensor, omega: Tensor,
+                 at: DistanceReservoirs) -> tuple[Tensor, Tensor]:
+        """``(p_hat, p_hat / luminance(L))`` of samples ``(t, light, omega)`` on ``at``'s rays."""
+        tau, _, inside = at.tau(t)
+        x = at.o + t[:, None] * at.d
+        wi, dist, c, _ = lights.evaluate(light, omega, x)
+        factor = self.albedo * self.grid.sigma_t(x) * torch.exp(-tau) * hg_pdf(self.g, (at.d * wi).sum(-1))
+        if self.coarse is not None:
+            factor = factor * self.coarse(x, wi, torch.minimum(self.grid.box.intersect(x, wi)[1], dist))
+        factor = torch.where(inside, factor, torch.zeros_like(factor))
+        return luminance3(c.unbind(1)) * factor, factor
+
+    def target_at(self, lights: LightSampler, r: Any, at: Any) -> Tensor:
+        return self._dtarget(lights, r.t, r.light, r.omega, at)[0]
+
+    # ------------------------------------------------------------------ the pass
+    def _initial(self, rec: Any, camera: Any, lights: LightSampler, gen: torch.Generator) -> DistanceReservoirs:
+        return self.initial(camera, camera.num_pixels * self.spp, lights, gen)
+
+    def initial(self, camera: Any, n: int, lights: LightSampler, gen: torch.Generator) -> DistanceReservoirs:
+        """Each camera ray's RIS over ``distance_candidates`` pairs ``(t, y)`` (class docstring)."""
+        r = self.rays(camera, n, gen)
+        m = self.settings.distance_candidates
+        u = torch.rand(n, 6 * m + 1, generator=gen, device=r.o.device)
+        ws, ps, ts, ks, om = [], [], [], [], []
+        for j in range(m):
+            t = self.sample_distance(r, u[:, 6 * j], u[:, 6 * j + 1])
+            ls = lights.sample(r.o + t[:, None] * r.d, u[:, 6 * j + 2:6 * j + 6])
+            p, factor = self._dtarget(lights, t, ls.light, ls.wi, r)
+            pt = self.distance_pdf(r, t)
+            w = luminance3(ls.weight.unbind(1)) * factor / pt.clamp(min=1e-30)  # p_hat / (p_t p_src)
+            ws.append(torch.where(pt > 0, w, torch.zeros_like(w)))
+            ps.append(p)
+            ts.append(t)
+            ks.append(ls.light)
+            om.append(ls.wi)
+        sel, total = _choose(ws, u[:, 6 * m])
+        ph = _gather(ps, sel)
+        ok = r.valid & (total > 0) & (ph > 0)
+        W = torch.where(ok, total / (m * ph).clamp(min=1e-30), torch.zeros_like(total))
+        M = torch.where(r.valid, torch.full_like(total, float(m)), torch.zeros_like(total))
+        return replace(r, t=_gather(ts, sel), light=_gather(ks, sel), omega=_gather(om, sel), W=W, M=M)
+
+    def shade(self, res: Any, rec: Any, lights: LightSampler, transmittance: Any, grid: Any,
+              majorants: Any, gen: torch.Generator, batch: int) -> Tensor:
+        """``sigma_s T(ta, t) HG L T(x_t -> y) W`` ``(N, 3)`` of each reservoir's pair on its own camera ray."""
+        out = torch.zeros(len(res.W), 3, device=res.o.device)
+        idx = (res.valid & (res.W > 0)).nonzero().squeeze(1)
+        for a in range(0, len(idx), batch):
+            i = idx[a:a + batch]
+            o, d, t = res.o[i], res.d[i], res.t[i]
+            x = o + t[:, None] * d
+            wi, dist, c, _ = lights.evaluate(res.light[i], res.omega[i], x)
+            w = self.albedo * grid.sigma_t(x) * hg_pdf(self.g, (d * wi).sum(-1)) * res.W[i]
+            t_cam = transmittance(grid, majorants, o, d, res.ta[i], t, gen)
+            t1 = torch.minimum(grid.box.intersect(x, wi)[1], dist)
+            t_light = transmittance(grid, majorants, x, wi, torch.zeros_like(t1), t1, gen)
+            out[i] = c * (w * t_cam * t_light)[:, None]
+        return out
+
+
+def make_reuse(settings: ReuseSettings, g: float, spp: int, grid: Any, albedo: float) -> ReservoirReuse | None:
+    """The reuse pass ``renderer.reuse`` asks for (``None`` for ``mode=none``)."""
+    if settings.mode == "none":
+        return None
+    if settings.domain == "distance":
+        return DistanceReuse(settings, g, spp, grid, albedo)
+    return ReservoirReuse(settings, g, spp, grid)

@@ -148,11 +148,12 @@ def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float,
                transmittance: Any, brick: Any, free_flight: str, backend: str, steps_per_call: int,
                compile_min_samples: int, rr_start: int | None = None, nrc: NRCRule | None = None,
                termination: Any = None, uniforms: Uniforms = counter_uniforms, inline_shadows: bool = True,
-               point_lights: tuple = (), reuse_vertex: int = 0) -> Core:
+               point_lights: tuple = (), reuse_vertex: int = 0, reuse_light_only: bool = False) -> Core:
     """The core for a scene and a renderer's settings (``nrc``: the termination rule and ``V``;
     ``inline_shadows=False``: shadow rays always queued for the estimator; ``point_lights``: those sampled
     equi-angularly, which ``lights`` must leave out; ``reuse_vertex``: the render paths' vertex whose next-event
-    estimate the reservoir reuse pass makes, 0 for none)."""
+    estimate the reservoir reuse pass makes, 0 for none; ``reuse_light_only``: and all of its direct light, by light
+    sampling, ``reuse.domain=distance``)."""
     if backend not in BACKENDS:
         raise ConfigError(f"renderer.backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     for key, value, low in (("steps_per_call", steps_per_call, 1), ("compile_min_samples", compile_min_samples, 0)):
@@ -169,9 +170,9 @@ def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float,
     # (160x90, 1 spp: trace 0.33 s inline, 0.25 s queued; pt 128x72 x 64 spp: 0.99 s inline, 1.9 s queued).
     inline = transmittance.name == "ratio" and inline_shadows
     step = Transport(layout, table, bricks.n_tables, inline, thr > 0, rr_start is not None, nrc, uniforms,
-                     sampler=lights, reuse_vertex=reuse_vertex)
+                     sampler=lights, reuse_vertex=reuse_vertex, reuse_light_only=reuse_light_only)
     eager_step = Transport(layout, table, bricks.n_tables, False, thr > 0, rr_start is not None, nrc, uniforms,
-                           sampler=lights, reuse_vertex=reuse_vertex) if inline else step
+                           sampler=lights, reuse_vertex=reuse_vertex, reuse_light_only=reuse_light_only) if inline else step
     P = step.params(grid, bricks, table, albedo, g, max_scatter, thr, rr_start, termination)
     inputs = SceneInputs.build(P, grid.density, bricks.flat)
     return Core(step, eager_step, inputs, majorants, transmittance, grid.device, backend,

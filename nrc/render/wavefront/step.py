@@ -93,7 +93,7 @@ class Transport:
 
     def __init__(self, layout: Layout, lights: LightTable, n_tables: int, inline_shadow: bool, roulette: bool,
                  russian_roulette: bool, nrc: NRCRule | None = None, uniforms: Uniforms = counter_uniforms,
-                 sampler: LightSampler | None = None, reuse_vertex: int = 0) -> None:
+                 sampler: LightSampler | None = None, reuse_vertex: int = 0, reuse_light_only: bool = False) -> None:
         if not lights.supported and sampler is None:
             raise ValueError("lat-long environment maps need the eager light sampler (sampler=)")
         self.sampler = None if lights.supported else sampler
@@ -103,6 +103,9 @@ class Transport:
         # reservoir reuse (nrc.render.wavefront.reuse): render paths' vertex reuse_vertex (0: none) leaves its
         # next-event estimate to the reuse pass, which the driver records the vertex for
         self.reuse_vertex = int(reuse_vertex)
+        # reuse.domain=distance: the reuse pass estimates all of that vertex's direct light by light sampling, so the
+        # path's phase-sampled direction from it does not count the environment it reaches
+        self.reuse_light_only = bool(reuse_light_only) and self.reuse_vertex > 0
         # vertex lanes: phase (2), then Russian roulette, the termination draw (nrc), the debias draw (nrc with
         # renderer.debias), the light choice
         self.lane_rr = 4
@@ -130,7 +133,9 @@ class Transport:
         fn = self.uniforms
         base = (self.layout.rows, self.layout.nrc, self.lights.structure, self.lights.supported, self.n_tables,
                 self.inline_shadow, self.roulette, self.rr, self.nrc, f"{fn.__module__}.{fn.__qualname__}")
-        return (*base, ("reuse", self.reuse_vertex)) if self.reuse_vertex else base
+        if not self.reuse_vertex:
+            return base
+        return (*base, ("reuse", self.reuse_vertex, "light_only") if self.reuse_light_only else ("reuse", self.reuse_vertex))
 
     @property
     def key(self) -> tuple[Any, ...]:
@@ -254,7 +259,7 @@ class Transport:
             dist2 = sum((xa - pa) ** 2 for xa, pa in zip(x, s.x_prev))
             first = n_s == 1
             a0 = torch.where(first, dist2 / (4.0 * math.pi), s.a0)
-            spread = torch.where(first, zero, s.spread + torch.sqrt(dist2 / s.pdf.clamp(min=1e-30)))
+            spread = torch.where(first, zero, s.spread + torch.sqrt(dist2 / s.pdf.abs().clamp(min=1e-30)))
             eligible = n_s.to(torch.float32) >= p[self.ix["min_vertices"]]
             if self.nrc.rule == "count":
                 fire = eligible & (u[self.lane_term] >= p[self.ix["p_continue"]])
@@ -277,9 +282,11 @@ class Transport:
 
         # the vertex does next-event estimation: a scattering one; with cache_target=indirect a terminating one too
         nee = go if self.nrc is None or self.nrc.cache_target == "full" else torch.ones_like(go)
+        at = None
         if self.reuse_vertex:  # a render path's reuse vertex: its next-event estimate is the reuse pass's
             at = n_s == self.reuse_vertex
-            nee = nee & ~(at if self.nrc is None else at & (s.rec_base < 0))
+            at = at if self.nrc is None else at & (s.rec_base < 0)
+            nee = nee & ~at
         lights = self.lights
         sh = torch.zeros_like(s.shadow)
         wi, tse, csh = s.wi, s.tse, s.csh
@@ -330,7 +337,11 @@ class Transport:
         s.beta = _where3(go, beta_s, s.beta)
         # pdf < 0 marks a segment whose environment is not counted at the escape: a continued path's first segment
         # under cache_target=indirect (its vertex's direct light came from light sampling alone)
-        s.pdf = torch.where(go, torch.where(cont, -pdf_s, pdf_s) if self.indirect_debias else pdf_s, s.pdf)
+        # (and, with reuse_light_only, a render path's segment from its reuse vertex)
+        no_env = cont if self.indirect_debias else None
+        if self.reuse_light_only:
+            no_env = at if no_env is None else no_env | at
+        s.pdf = torch.where(go, torch.where(no_env, -pdf_s, pdf_s) if no_env is not None else pdf_s, s.pdf)
         s.wi = _where3(nee, wi, s.wi)
         s.ts = torch.where(nee, zero, s.ts)
         s.tse = torch.where(nee, tse, s.tse)
