@@ -15,7 +15,9 @@ from nrc.camera import Camera
 from nrc.errors import ConfigError
 from nrc.render.pt import PathTracer, PathTracerSettings
 from nrc.render.radiance_caching import NRCRenderer
-from nrc.render.wavefront.reuse import DistanceReuse, ReservoirReuse, Reservoirs, ReuseSettings, VertexRecord
+from nrc.render.wavefront import reuse as reuse_module
+from nrc.render.wavefront.reuse import (DistanceReuse, ExtinctionTable, ReservoirReuse, Reservoirs, ReuseSettings,
+                                        VertexRecord)
 from nrc.scene import load_scene
 from nrc.transport.light_sampling import LightSampler, luminance3
 from nrc.transport.phase import hg_pdf
@@ -191,13 +193,15 @@ def _single_scattering(scene, lights: LightSampler, jitters: int = 6, steps: int
 
 
 @pytest.mark.parametrize("mode", ["spatial", "spatiotemporal"])
-def test_distance_reuse_is_unbiased_against_quadrature(mode):
+def test_distance_reuse_is_unbiased_against_quadrature(mode, monkeypatch):
     """``domain=distance`` (pairs of a camera-ray distance and a light sample) on 16 point lights and a sky,
     transmittance 1: the per-pixel mean over 24 seeds x 6 frames matches the quadrature of the camera rays'
     single scattering, image-wide within 4 standard errors and in 3x3 blocks of 8x8 pixels within 4.5; reuse
     lowers the error of the last frame below that of the rays' own RIS. A thin medium (optical depth <~ 1):
     the target's coarse transmittance then stays near the stub's 1 (a target far from the integrand is
     unbiased too, but its heavy tail would need far more seeds)."""
+    # the shading's two transmittance estimates are 1 here (their own unbiasedness is tested below)
+    monkeypatch.setattr(reuse_module._Table, "transmittance", lambda self, grid, t, points, gen: torch.ones_like(t))
     cfg = compose(["scene=many_lights", *SMALL, "scene.volume.density_scale=0.02"])
     scene = load_scene(cfg.scene)
     lights = LightSampler.for_scene(scene, "ris", 4)
@@ -222,6 +226,42 @@ def test_distance_reuse_is_unbiased_against_quadrature(mode):
     assert stats["reuse_spatial_accept"] > 0.05 and stats["reuse_mean_m"] > 8
     if mode == "spatiotemporal":
         assert stats["reuse_temporal_found"] > 0.9
+
+
+@pytest.mark.parametrize("steps", [16, 64])
+def test_table_transmittance_is_unbiased_and_far_less_noisy_than_ratio_tracking(steps):
+    """The distance domain's transmittance (residual ratio tracking against a ray's extinction table,
+    ``_Table.transmittance``) on camera rays through a dense procedural cloud: the mean of 400 estimates per
+    ray matches ``exp(-tau)`` by a 4096-step quadrature within 4.5 standard errors on every ray and on average,
+    whether the table resolves the grid (64 steps) or not (16 steps: unbiased for any table); with 64 steps its
+    variance is below a fifth of ratio tracking's on the same segments."""
+    from nrc.render.pt import PathTracer
+
+    cfg = compose(["renderer=pt", "scene=many_lights", *SMALL])
+    scene = load_scene(cfg.scene)
+    grid, cam = scene.grid, scene.camera
+    o, d = cam.generate_rays(torch.arange(cam.num_pixels), torch.full((cam.num_pixels, 2), 0.5))
+    ta, tb = grid.box.intersect(o, d)
+    ta = ta.clamp(min=0.0)
+    keep = (tb > ta).nonzero().squeeze(1)
+    o, d, ta, tb = o[keep], d[keep], ta[keep], tb[keep]
+    t = ta + 0.7 * (tb - ta)
+    q = 4096
+    h = (t - ta) / q
+    tau = sum(grid.sigma_t(o + d * (ta + (k + 0.5) * h)[:, None]) * h for k in range(q))
+    exact = torch.exp(-tau)
+    assert float(tau.max()) > 2.0  # dense enough that the estimators differ
+    reps = 400
+    tab = ExtinctionTable.march(grid, o, d, ta, tb, steps).take(torch.arange(len(o)).repeat(reps))
+    gen = torch.Generator().manual_seed(5)
+    est = tab.transmittance(grid, t.repeat(reps), 8, gen).view(reps, -1)
+    z = (est.mean(0) - exact) / (est.std(0) / math.sqrt(reps)).clamp(min=1e-7)
+    assert float(z.abs().max()) < 4.5 and abs(float(z.mean())) < 4.5 / math.sqrt(len(z)) * 2
+    if steps == 64:
+        pt = PathTracer(scene, cfg)
+        ratio = pt.transmittance(grid, pt.majorants, o.repeat(reps, 1), d.repeat(reps, 1), ta.repeat(reps),
+                                 t.repeat(reps), gen).view(reps, -1)
+        assert float(est.var(0).sum()) < 0.2 * float(ratio.var(0).sum())
 
 
 def test_distance_source_pdf_integrates_to_one_and_samples_follow_it():
@@ -282,6 +322,8 @@ def test_reprojection_of_a_static_camera_is_the_identity_and_follows_a_moving_on
     ("renderer.reuse.mis=power", "renderer.reuse.mis must be one of"),
     ("renderer.reuse.domain=path", "renderer.reuse.domain must be one of"),
     ("renderer.reuse.distance_candidates=0", "renderer.reuse.distance_candidates must be >= 1"),
+    ("renderer.reuse.distance_steps=0", "renderer.reuse.distance_steps must be >= 1"),
+    ("renderer.reuse.target=exact", "renderer.reuse.target must be one of"),
 ])
 def test_bad_reuse_settings_name_the_key(override, message):
     with pytest.raises(ConfigError) as err:

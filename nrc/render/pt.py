@@ -86,7 +86,8 @@ class PathTracerSettings:
     ``point_light_sampling`` (``none`` | ``equiangular``) (nrc.transport.light_sampling)."""
     reuse: ReuseSettings = ReuseSettings()
     """``reuse.mode`` (``none`` | ``spatial`` | ``spatiotemporal``), ``neighbors``, ``radius``, ``history``,
-    ``defer_g``, ``target``, ``mis``, ``domain`` (``light`` | ``distance``), ``distance_candidates``: reservoir
+    ``defer_g``, ``target``, ``mis``, ``domain`` (``light`` | ``distance``), ``distance_candidates``,
+    ``distance_steps``: reservoir
     reuse at the first vertex or along the camera ray (nrc.render.wavefront.reuse)."""
 
     @classmethod
