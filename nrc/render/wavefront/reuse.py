@@ -593,7 +593,7 @@ class _Table:
 
 @dataclass
 class ExtinctionTable(_Table, _Rows):
-    """A :class:`_Table` of its own (shadow segments)."""
+    """A :class:`_Table` with its rays (shadow segments; the camera rays of :class:`DistanceReservoirs`)."""
 
     o: Tensor
     d: Tensor
@@ -617,7 +617,7 @@ class ExtinctionTable(_Table, _Rows):
 
 
 @dataclass
-class DistanceReservoirs(_Table, _Rows):
+class DistanceReservoirs(ExtinctionTable):
     """``domain=distance``: one reservoir per sample slot holding a pair ``(t, y)``: the distance ``t`` ``(N,)``
     along the slot's camera ray and the light sample ``(light, omega)``; ``W``, ``M`` as :class:`Reservoirs`;
     the camera ray (``o``, ``d`` ``(N, 3)``; ``ta``, ``tb`` ``(N,)`` its span in the box) and its extinction
@@ -629,12 +629,6 @@ class DistanceReservoirs(_Table, _Rows):
     omega: Tensor
     W: Tensor
     M: Tensor
-    o: Tensor
-    d: Tensor
-    ta: Tensor
-    tb: Tensor
-    cum: Tensor
-    valid: Tensor
     SAMPLE = ("t", "light", "omega")
 
     @property
@@ -703,8 +697,9 @@ class DistanceReuse(ReservoirReuse):
         tb = torch.where(valid, tb, ta)
         tab = ExtinctionTable.march(self.grid, o, d, ta, tb, self.settings.distance_steps)
         z = torch.zeros(n, device=dev)
-        return DistanceReservoirs(z, torch.zeros(n, dtype=torch.long, device=dev), torch.zeros(n, 3, device=dev),
-                                  z.clone(), z.clone(), o, d, ta, tb, tab.cum, valid)
+        return DistanceReservoirs(o, d, ta, tb, tab.cum, valid, t=z, W=z.clone(), M=z.clone(),
+                                  light=torch.zeros(n, dtype=torch.long, device=dev),
+                                  omega=torch.zeros(n, 3, device=dev))
 
     def _mix(self, r: DistanceReservoirs) -> Tensor:
         """The exponential share of the distance source (none on a ray whose coarse depth is 0)."""
