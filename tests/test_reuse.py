@@ -252,7 +252,7 @@ def test_table_transmittance_is_unbiased_and_far_less_noisy_than_ratio_tracking(
     exact = torch.exp(-tau)
     assert float(tau.max()) > 2.0  # dense enough that the estimators differ
     reps = 400
-    tab = ExtinctionTable.march(grid, o, d, ta, tb, steps).take(torch.arange(len(o)).repeat(reps))
+    tab = ExtinctionTable.march(grid.sigma_t, o, d, ta, tb, steps).take(torch.arange(len(o)).repeat(reps))
     gen = torch.Generator().manual_seed(5)
     est = tab.transmittance(grid, t.repeat(reps), 8, gen).view(reps, -1)
     z = (est.mean(0) - exact) / (est.std(0) / math.sqrt(reps)).clamp(min=1e-7)

@@ -83,35 +83,33 @@ REUSE_DOMAINS = ("light", "distance")
 
 class CoarseTransmittance:
     """A deterministic approximation of the transmittance for the reuse targets (as Lin et al. 2021 put a
-    coarse-grid transmittance into theirs): the density averaged into at most ``cells^3`` cells, marched in
-    ``steps`` equal steps (midpoints, nearest cell). Always positive, so a target that multiplies by it keeps
-    the support of the unshadowed one (the estimate stays unbiased); cost ``steps`` gathers a ray.
+    coarse-grid transmittance into theirs): the density averaged into at most ``cells^3`` cells (nearest cell;
+    ``cells <= 0``: the full-resolution grid, trilinear), marched in ``steps`` equal steps
+    (:meth:`ExtinctionTable.march`, midpoints). Always positive, so a target that multiplies by it keeps the
+    support of the unshadowed one (the estimate stays unbiased); cost ``steps`` lookups a ray.
 
     Args:
         grid: the :class:`~nrc.volume.grid.DensityGrid`.
-        cells: cells per axis at most; steps: march steps.
+        cells: cells per axis at most (``<= 0``: no averaging); steps: march steps.
     """
 
     def __init__(self, grid: Any, cells: int = 32, steps: int = 16) -> None:
-        self.grid = grid if cells <= 0 else None  # cells <= 0: the full-resolution grid (trilinear)
-        size = tuple(min(int(n), max(cells, 1)) for n in grid.shape)
-        sigma = torch.nn.functional.adaptive_avg_pool3d(grid.density[None, None], size)[0, 0] * grid.density_scale
-        self.sigma = sigma.reshape(-1).contiguous()
-        self.size = torch.tensor(size, device=grid.device)
-        self.lo, self.extent = grid.box.lo, grid.box.hi - grid.box.lo
         self.steps = steps
+        self.sigma_at = grid.sigma_t
+        if cells > 0:
+            size = tuple(min(int(n), cells) for n in grid.shape)
+            sigma = torch.nn.functional.adaptive_avg_pool3d(grid.density[None, None], size)[0, 0] * grid.density_scale
+            self.sigma = sigma.reshape(-1).contiguous()
+            self.size = torch.tensor(size, device=grid.device)
+            self.lo, self.extent = grid.box.lo, grid.box.hi - grid.box.lo
+            self.sigma_at = self._cell_sigma
 
     def __call__(self, x: Tensor, wi: Tensor, t1: Tensor) -> Tensor:
         """``T`` ``(N,)`` from ``x`` along unit ``wi`` over ``[0, t1]`` (``(N, 3)``, ``(N, 3)``, ``(N,)``)."""
-        t = (torch.arange(self.steps, device=x.device, dtype=x.dtype) + 0.5) / self.steps
-        p = x[:, None, :] + (t[None, :, None] * t1[:, None, None]) * wi[:, None, :]  # (N, S, 3)
-        tau = self.sigma_at(p).sum(1) * t1 / self.steps
-        return torch.exp(-tau)
+        return torch.exp(-ExtinctionTable.march(self.sigma_at, x, wi, torch.zeros_like(t1), t1, self.steps).total())
 
-    def sigma_at(self, p: Tensor) -> Tensor:
+    def _cell_sigma(self, p: Tensor) -> Tensor:
         """The averaged extinction of the cells holding points ``p`` ``(..., 3)`` (0 outside the box)."""
-        if self.grid is not None:
-            return self.grid.sigma_t(p.reshape(-1, 3)).view(p.shape[:-1])
         s = (p - self.lo) / self.extent
         inside = ((s >= 0) & (s < 1)).all(-1)
         c = torch.minimum((s.clamp(min=0.0) * self.size).long(), self.size - 1)
@@ -603,14 +601,15 @@ class ExtinctionTable(_Table, _Rows):
     valid: Tensor
 
     @classmethod
-    def march(cls, grid: Any, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, steps: int) -> ExtinctionTable:
-        """The table of ``steps`` equal steps over ``[ta, tb]`` ``(N,)`` of rays ``o``, ``d``, read from the
-        full-resolution grid (``steps`` lookups a ray with a non-empty span)."""
+    def march(cls, sigma: Any, o: Tensor, d: Tensor, ta: Tensor, tb: Tensor, steps: int) -> ExtinctionTable:
+        """The table of ``steps`` equal steps over ``[ta, tb]`` ``(N,)`` of rays ``o``, ``d``: the extinction
+        ``sigma(points (M, 3)) -> (M,)`` (the grid's ``sigma_t``, or :class:`CoarseTransmittance`'s cells) read
+        at the steps' midpoints, ``steps`` lookups a ray with a non-empty span."""
         valid = tb > ta
         i = valid.nonzero().squeeze(1)  # empty spans read nothing (their table is 0)
         frac = (torch.arange(steps, device=o.device, dtype=o.dtype) + 0.5) / steps
         tm = ta[i, None] + frac[None, :] * (tb - ta)[i, None]
-        sig = grid.sigma_t((o[i, None, :] + tm[..., None] * d[i, None, :]).reshape(-1, 3)).view(len(i), steps)
+        sig = sigma((o[i, None, :] + tm[..., None] * d[i, None, :]).reshape(-1, 3)).view(len(i), steps)
         cum = torch.zeros(len(o), steps, device=o.device, dtype=o.dtype)
         cum[i] = torch.cumsum(sig, 1) * ((tb - ta)[i] / steps)[:, None]
         return cls(o, d, ta, tb, cum, valid)
@@ -695,14 +694,14 @@ class DistanceReuse(ReservoirReuse):
         ta = ta.clamp(min=0.0)
         valid = tb > ta
         tb = torch.where(valid, tb, ta)
-        tab = ExtinctionTable.march(self.grid, o, d, ta, tb, self.settings.distance_steps)
+        tab = ExtinctionTable.march(self.grid.sigma_t, o, d, ta, tb, self.settings.distance_steps)
         z = torch.zeros(n, device=dev)
         return DistanceReservoirs(o, d, ta, tb, tab.cum, valid, t=z, W=z.clone(), M=z.clone(),
                                   light=torch.zeros(n, dtype=torch.long, device=dev),
                                   omega=torch.zeros(n, 3, device=dev))
 
     def _mix(self, r: DistanceReservoirs) -> Tensor:
-        """The exponential share of the distance source (none on a ray whose coarse depth is 0)."""
+        """The exponential share of the distance source (none on a ray whose table depth is 0)."""
         return torch.where(r.total() > 1e-6, torch.full_like(r.ta, 1.0 - self.UNIFORM), torch.zeros_like(r.ta))
 
     def distance_pdf(self, r: DistanceReservoirs, t: Tensor) -> Tensor:
@@ -783,7 +782,7 @@ class DistanceReuse(ReservoirReuse):
             w = self.albedo * grid.sigma_t(x) * hg_pdf(self.g, (r.d * wi).sum(-1)) * r.W
             t_cam = r.transmittance(grid, r.t, self.CAMERA_POINTS, gen)
             t1 = torch.minimum(grid.box.intersect(x, wi)[1], dist)
-            shadow = ExtinctionTable.march(grid, x, wi, torch.zeros_like(t1), t1, self.LIGHT_STEPS)
+            shadow = ExtinctionTable.march(grid.sigma_t, x, wi, torch.zeros_like(t1), t1, self.LIGHT_STEPS)
             t_light = shadow.transmittance(grid, t1, self.LIGHT_POINTS, gen)
             out[i] = c * (w * t_cam * t_light)[:, None]
         return out
