@@ -27,6 +27,10 @@ the frame's relative variance with ``B`` and with each ``C``, and the ceiling ``
 per frame of a noiseless direct-light estimate at the vertex, which no reuse of light samples there can beat.
 ``--decompose-nrc`` scene types do the same for 1-spp NRC frames of a static camera (:func:`decompose_nrc`),
 where the cache replaces the rest of the path: both estimators' frames on one cache, against the reference.
+``--oracle-nrc`` scene types (``name`` or ``name:override,override``; ``';'`` between them) bound what any reuse
+of the distance domain could give (:func:`oracle_nrc`): the frames with the camera ray's single scattering
+replaced by its expectation, at no cost, raw and after OIDN, beside ``none`` and the real estimators; with
+``renderer.debias.probability=1`` in the overrides the frames are the path tracer's estimator.
 
 Writes ``bench.json`` and ``bench.md`` to ``--out``.
 """
@@ -39,6 +43,7 @@ import math
 import platform
 import sys
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -273,7 +278,7 @@ class _RecordingReuse:
 
     def frame(self, rec, camera, lights, transmittance, grid, majorants, gen, batch):
         t0 = time.perf_counter()
-        own = self.inner.shade(self.inner.initial(rec, lights, self.gen), rec, lights, transmittance, grid,
+        own = self.inner.shade(self.inner._initial(rec, camera, lights, self.gen), rec, lights, transmittance, grid,
                                majorants, self.gen, batch)
         self.s_own.append(time.perf_counter() - t0)
         out, stats = self.inner.frame(rec, camera, lights, transmittance, grid, majorants, gen, batch)
@@ -336,14 +341,15 @@ def decompose_nrc(name: str, args, log) -> dict:
     out: dict = {"scene": name, "renderer": "nrc", "frames_scored": len(img),
                  "direct_share": float(own.mean(0)[m].mean() / (rest.mean(0)[m].mean() + own.mean(0)[m].mean())),
                  "ceiling": rel_var(rest + own) / rel_var(rest), "modes": {}}
-    t_frame, t_st = float(np.median(times[w:])), float(np.median(t_reuse[w:]))
+    # seconds per frame: the run's without the recording's own-RIS pass (it runs inside the frame's time);
+    # none's replaces the reuse pass by that own-RIS pass
+    s_own = float(np.median(rec.s_own[w:]))
+    t_frame, t_st = float(np.median(times[w:])) - s_own, float(np.median(t_reuse[w:]))
     for mode, v in frames.items():
         scores = [score(f.reshape(hw), ref, mask) for f in v]
         row = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
         row["rel_var_frames"] = rel_var(v)
-        # seconds per frame: the run's; none's replaces the reuse pass by the own-RIS estimate
-        row["seconds_per_frame"] = t_frame if mode == "spatiotemporal" else \
-            t_frame - t_st + float(np.median(rec.s_own[w:]))
+        row["seconds_per_frame"] = t_frame if mode == "spatiotemporal" else t_frame - t_st + s_own
         out["modes"][mode] = row
         log(f"nrc decompose {name} {mode}: " + ", ".join(f"{k} {x:.4g}" for k, x in row.items()))
     no, st = out["modes"]["none"], out["modes"]["spatiotemporal"]
@@ -352,6 +358,98 @@ def decompose_nrc(name: str, args, log) -> dict:
     st["gain_rel_mse_per_frame"] = no["rel_mse"] / st["rel_mse"]
     st["gain_rel_mse_oidn_per_frame"] = no["rel_mse_oidn"] / st["rel_mse_oidn"]
     return out
+
+
+ORACLE_REUSE = "distance_spatiotemporal_fine"
+
+
+def oracle_nrc(spec: str, args, log) -> dict:
+    """``--oracle-nrc``: what the best possible reuse of the distance domain could give. For
+    ``name[:override,...]`` (``renderer.debias.probability=q`` among them: ``q = 0`` the biased NRC, ``q = 1``
+    the path tracer's estimator) two NRC runs of 1-spp frames of a static camera on the same overrides:
+    ``none`` (no reuse), and :data:`ORACLE_REUSE`, whose reuse pass is recorded with the pixels' own RIS of the
+    same term beside it (:class:`_RecordingReuse`). With ``domain=distance`` that term is ``I``, the camera
+    ray's single scattering of the sampled lights, which does not depend on the path or the cache; ``rest`` is
+    the frame minus it. Four estimators are scored per frame against the reference (relMSE, mean, FLIP, the
+    same after OIDN): ``none``; ``own`` (``rest`` + own RIS); the reuse run's frame; and ``oracle``: ``rest``
+    plus the mean over the scored frames of both estimates of ``I`` (a noiseless ``I`` up to ``1/(2 frames)``
+    of its variance) at no cost, which no reuse of the distance domain can beat. Equal time: raw relMSE scaled
+    by the seconds per frame (the oracle's are the reuse run's without its reuse pass)."""
+    from nrc.render.radiance_caching import NRCRenderer
+
+    name, _, more = spec.partition(":")
+    extra = [o for o in more.split(",") if o]
+    # the reference depends on the scene only: the spec's scene.* overrides go into it (and its file name)
+    scene_extra = [o for o in extra if o.startswith("scene.")]
+    tag = name + "".join(f"_{zlib.crc32(' '.join(scene_extra).encode()):08x}" for _ in scene_extra[:1])
+    ref = reference(tag, [*PRESETS[name], *COMMON, *args.extra, *scene_extra], args, log)
+    base = [*PRESETS[name], "renderer=nrc", "renderer.backend=eager", "renderer.light_selection=ris",
+            "renderer.log.tensorboard=false", f"frames={args.nrc_frames}", "scene.integrator.spp=1", *args.extra,
+            *extra]
+    w = args.nrc_warmup
+    scene = load_scene(compose(base).scene)
+    mask = medium_mask(medium_alpha(scene))
+    hw = (scene.camera.height, scene.camera.width, 3)
+    runs = {}
+    for variant in ("none", ORACLE_REUSE):
+        cfg = compose([*base, *NRC_VARIANTS[variant]])
+        r = NRCRenderer(load_scene(cfg.scene), cfg)
+        rec = r.reuse = _RecordingReuse(r.reuse, r.device) if r.reuse is not None else None
+        images: list[np.ndarray] = []
+        res = r.render(on_frame=lambda f, img, o, st: images.append(np.asarray(img).reshape(-1, 3).copy()))
+        hist = res.metrics["history"]
+        runs[variant] = {"img": np.stack(images)[w:], "rec": rec,
+                         "s": float(np.median(res.metrics["frame_times_s"][w:])),
+                         "s_reuse": float(np.median(hist.get("time_reuse_s", [0.0])[w:] or [0.0]))}
+        log(f"oracle {spec} {variant}: {runs[variant]['s']:.2f} s/frame")
+    run = runs[ORACLE_REUSE]
+    own, reused = (np.stack(v)[w:] for v in (run["rec"].own, run["rec"].reused))
+    rest = run["img"] - reused
+    exact = 0.5 * (own.mean(0) + reused.mean(0))
+    # the recording's own-RIS pass runs inside the frame's time: the reuse run's frame is that time without it
+    s_own = float(np.median(run["rec"].s_own[w:]))
+    s_frame = run["s"] - s_own
+    s_rest = s_frame - run["s_reuse"]
+    estimators = {"none": (runs["none"]["img"], runs["none"]["s"]), "own": (rest + own, s_rest + s_own),
+                  "reuse": (run["img"], s_frame), "oracle": (rest + exact[None], s_rest)}
+    m = mask.reshape(-1)
+    out: dict = {"scene": spec, "renderer": "nrc", "reuse": NRC_VARIANTS[ORACLE_REUSE], "frames_scored": len(own),
+                 "single_scatter_share": float(exact[m].mean() / run["img"].mean(0)[m].mean()), "estimators": {}}
+    for key, (frames, secs) in estimators.items():
+        scores = [score(f.reshape(hw), ref, mask) for f in frames]
+        row = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
+        row["rel_mse_of_mean"] = rel_mse(frames.mean(0).reshape(hw), ref, mask)
+        row["seconds_per_frame"] = secs
+        out["estimators"][key] = row
+        log(f"oracle {spec} {key}: " + ", ".join(f"{k} {x:.4g}" for k, x in row.items()))
+    no = out["estimators"]["none"]
+    for key, row in out["estimators"].items():
+        row["gain_raw_per_frame"] = no["rel_mse"] / row["rel_mse"]
+        row["gain_raw_equal_time"] = row["gain_raw_per_frame"] * no["seconds_per_frame"] / row["seconds_per_frame"]
+        row["gain_oidn_per_frame"] = no["rel_mse_oidn"] / row["rel_mse_oidn"]
+    return out
+
+
+def oracle_markdown(results: list[dict], meta: dict) -> str:
+    lines = ["# Reservoir reuse: the oracle bound (`scripts/bench_reuse.py --oracle-nrc`)", "",
+             f"{meta['machine']}; torch {meta['torch']}; code {meta['code']}; {meta['nrc_frames']} frames, first "
+             f"{meta['nrc_warmup']} left out; reference {meta['ref_spp']} spp; extra: {' '.join(meta['extra']) or '-'}",
+             "", "`oracle`: the frame with the camera ray's single scattering of the lights replaced by its "
+             "expectation, at no cost (the best any reuse of the distance domain can do). `own`/`reuse`: the "
+             f"distance domain's own RIS / `{ORACLE_REUSE}`. Gains against `none` (no reuse); equal time scales "
+             "the raw relMSE by the seconds per frame; OIDN per frame.", "",
+             "| scene | single-scatter share | estimator | s/frame | relMSE | mean/ref | relMSE OIDN | mean/ref OIDN | "
+             "relMSE of mean | gain raw: per frame / equal time | gain OIDN per frame |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        for i, (key, row) in enumerate(r["estimators"].items()):
+            head = f"| {r['scene']} | {r['single_scatter_share']:.3f}" if i == 0 else "| |"
+            g = "–" if key == "none" else f"{row['gain_raw_per_frame']:.2f}x / {row['gain_raw_equal_time']:.2f}x"
+            go = "–" if key == "none" else f"{row['gain_oidn_per_frame']:.2f}x"
+            lines.append(f"{head} | {key} | {row['seconds_per_frame']:.2f} | {row['rel_mse']:.4g} | "
+                         f"{row['mean_ratio']:.3f} | {row['rel_mse_oidn']:.4g} | {row['mean_ratio_oidn']:.3f} | "
+                         f"{row['rel_mse_of_mean']:.4g} | {g} | {go} |")
+    return "\n".join(lines) + "\n"
 
 
 def decompose_nrc_markdown(results: list[dict]) -> str:
@@ -456,6 +554,8 @@ def main() -> int:
                     "them) to decompose the variance of instead (module docstring)")
     ap.add_argument("--decompose-nrc", default="", help="scene types to decompose NRC frames of (module "
                     "docstring; uses --nrc-frames, --nrc-warmup and the reference)")
+    ap.add_argument("--oracle-nrc", default="", help="scene types (name or name:override,override; ';' between "
+                    "them) to bound the distance domain's reuse on (oracle_nrc; uses --nrc-frames, --nrc-warmup)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
@@ -465,6 +565,13 @@ def main() -> int:
     meta = {"frames": args.frames, "warmup": args.warmup, "nrc_frames": args.nrc_frames,
             "nrc_warmup": args.nrc_warmup, "ref_spp": args.ref_spp, "extra": args.extra, "code": code_version(),
             "torch": torch.__version__, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads"}
+    if args.oracle_nrc:
+        results = [oracle_nrc(s, args, log) for s in args.oracle_nrc.split(";") if s]
+        (args.out / "oracle.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
+        md = oracle_markdown(results, meta)
+        (args.out / "oracle.md").write_text(md)
+        print(md)
+        return 0
     if args.decompose or args.decompose_nrc:
         results = [decompose_scene(s, args, log) for s in args.decompose.split(";") if s]
         nrc = [decompose_nrc(s, args, log) for s in args.decompose_nrc.split(",") if s]

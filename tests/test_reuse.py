@@ -372,6 +372,29 @@ def test_path_tracer_with_reuse_agrees_with_the_path_tracer(scene, mode, target,
     assert_images_agree(reuse, plain)
 
 
+def test_compiled_step_structure_with_distance_reuse_agrees_with_the_eager_step():
+    """The compiled backend's step structure (run eagerly: the code the compiled backend compiles) with
+    ``domain=distance``, whose first vertex does no next-event estimate and does not count the sky its phase
+    direction reaches (``reuse_light_only``), against the eager step with the same reuse, block-wise over 8
+    seeds each; and the structure's key names the light-only variant (one compiled graph per variant)."""
+
+    def renders(structure: bool, first: int) -> list[np.ndarray]:
+        out = []
+        for seed in range(first, first + 8):
+            cfg = compose([*TINY, "scene=sun_sky", "renderer.reuse.mode=spatial", "renderer.reuse.neighbors=0",
+                           "renderer.reuse.domain=distance", "scene.integrator.spp=16",
+                           f"scene.integrator.seed={seed}"])
+            pt = PathTracer(load_scene(cfg.scene), cfg)
+            if structure:
+                assert pt.core.step is not pt.core.eager_step  # shadow rays inside the step: other code
+                assert ("reuse", 1, "light_only") in pt.core.step.structure
+                pt.core.eager_step = pt.core.step
+            out.append(pt.render().image)
+        return out
+
+    assert_images_agree(renders(True, 0), renders(False, 100))
+
+
 NRC_TINY = ["renderer=nrc", "scene=sun_sky", "scene.volume.procedural.resolution=24", "scene.camera.width=16",
             "scene.camera.height=8", "renderer.training.width=8", "renderer.training.height=8",
             "cache.network.n_neurons=16", "cache.network.n_hidden_layers=1", "encoding.position.n_levels=4",
@@ -443,3 +466,32 @@ def test_bench_reuse_decomposition_runs_on_a_tiny_scene(tmp_path):
     md = bench.decompose_markdown([out], {"machine": "-", "torch": "-", "code": "-", "frames": 10, "warmup": 2,
                                           "extra": []})
     assert md.count("spatiotemporal/") == 2 and "none (own RIS)" in md
+
+
+def test_bench_reuse_oracle_runs_on_a_tiny_scene(tmp_path):
+    """``scripts/bench_reuse.py --oracle-nrc`` on a tiny scene: four estimators scored (none, own, reuse,
+    oracle), finite figures, the single-scatter share a fraction, the oracle no slower than the reuse run, and a
+    markdown row per estimator."""
+    import importlib.util
+    import types
+
+    from conftest import REPO
+
+    spec = importlib.util.spec_from_file_location("bench_reuse", REPO / "scripts" / "bench_reuse.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    args = types.SimpleNamespace(nrc_frames=5, nrc_warmup=1, ref_spp=8, extra=[], out=tmp_path)
+    tiny = ("sun_sky:scene.camera.width=16,scene.camera.height=8,scene.volume.procedural.resolution=20,"
+            "renderer.training.width=8,renderer.training.height=8,cache.network.n_neurons=16,"
+            "cache.network.n_hidden_layers=1,encoding.position.n_levels=4,encoding.position.log2_hashmap_size=12,"
+            "renderer.reuse.distance_steps=16")
+    out = bench.oracle_nrc(tiny, args, lambda msg: None)
+    assert set(out["estimators"]) == {"none", "own", "reuse", "oracle"} and out["frames_scored"] == 4
+    assert 0.0 < out["single_scatter_share"] < 1.0
+    for row in out["estimators"].values():
+        assert all(math.isfinite(x) for x in row.values())
+    est = out["estimators"]
+    assert est["oracle"]["seconds_per_frame"] <= est["reuse"]["seconds_per_frame"]
+    md = bench.oracle_markdown([out], {"machine": "-", "torch": "-", "code": "-", "nrc_frames": 5, "nrc_warmup": 1,
+                                       "ref_spp": 8, "extra": []})
+    assert all(f"| {k} |" in md for k in ("none", "own", "reuse", "oracle"))

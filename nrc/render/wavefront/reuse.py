@@ -306,6 +306,20 @@ def _choose(ws: list[Tensor], u: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(total > 0, sel, torch.zeros_like(sel)), total
 
 
+def _resample(ws: list[Tensor], ps: list[Tensor], u: Tensor, valid: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The end of an initial RIS over ``m = len(ws)`` candidates per row: ``ws`` their resampling weights
+    ``p_hat / p_src``, ``ps`` their targets ``p_hat``, ``u`` ``(N,)`` the choice. Returns the chosen index
+    ``(N,)``, the contribution weight ``W = sum w / (m p_hat(chosen))`` (0 where the row is invalid or nothing
+    has weight) and the confidence ``M = m`` (0 on invalid rows)."""
+    m = len(ws)
+    sel, total = _choose(ws, u)
+    ph = _gather(ps, sel)
+    ok = valid & (total > 0) & (ph > 0)
+    W = torch.where(ok, total / (m * ph).clamp(min=1e-30), torch.zeros_like(total))
+    M = torch.where(valid, torch.full_like(total, float(m)), torch.zeros_like(total))
+    return sel, W, M
+
+
 def _gather(values: list[Tensor], sel: Tensor) -> Tensor:
     """``values[sel[n]][n]`` for each row ``n`` (``(N,)`` or ``(N, 3)`` values)."""
     return torch.stack(values, 1)[torch.arange(len(sel), device=sel.device), sel]
@@ -322,10 +336,11 @@ class ReservoirReuse:
     """
 
     RESERVOIRS: type = Reservoirs
+    TARGET_STEPS = 16  # march steps of the coarse / fine target's transmittance towards the light
 
     def __init__(self, settings: ReuseSettings, g: float, spp: int, grid: Any) -> None:
         self.settings, self.g, self.spp, self.grid = settings, float(g), int(spp), grid
-        self.coarse = (CoarseTransmittance(grid, cells=0 if settings.target == "fine" else 32)
+        self.coarse = (CoarseTransmittance(grid, cells=0 if settings.target == "fine" else 32, steps=self.TARGET_STEPS)
                        if settings.target != "unshadowed" else None)
         self.prev: Reservoirs | None = None
         self.prev_camera: Any = None
@@ -371,12 +386,8 @@ class ReservoirReuse:
             ps.append(p)
             ks.append(ls.light)
             om.append(ls.wi)
-        sel, total = _choose(ws, u[:, 4 * m])
-        light, omega, ph = _gather(ks, sel), _gather(om, sel), _gather(ps, sel)
-        ok = rec.valid & (total > 0) & (ph > 0)
-        W = torch.where(ok, total / (m * ph).clamp(min=1e-30), torch.zeros_like(total))
-        M = torch.where(rec.valid, torch.full_like(total, float(m)), torch.zeros_like(total))
-        return Reservoirs(light, omega, W, M, rec.x, rec.d, rec.mis, rec.valid)
+        sel, W, M = _resample(ws, ps, u[:, 4 * m], rec.valid)
+        return Reservoirs(_gather(ks, sel), _gather(om, sel), W, M, rec.x, rec.d, rec.mis, rec.valid)
 
     def combine(self, inputs: list[Reservoirs], lights: LightSampler, u: Tensor) -> tuple[Reservoirs, Tensor]:
         """Generalized RIS of ``inputs`` (``inputs[0]`` the receivers) with the MIS weights of ``reuse.mis``
@@ -762,11 +773,7 @@ class DistanceReuse(ReservoirReuse):
             ts.append(t)
             ks.append(ls.light)
             om.append(ls.wi)
-        sel, total = _choose(ws, u[:, 6 * m])
-        ph = _gather(ps, sel)
-        ok = r.valid & (total > 0) & (ph > 0)
-        W = torch.where(ok, total / (m * ph).clamp(min=1e-30), torch.zeros_like(total))
-        M = torch.where(r.valid, torch.full_like(total, float(m)), torch.zeros_like(total))
+        sel, W, M = _resample(ws, ps, u[:, 6 * m], r.valid)
         return replace(r, t=_gather(ts, sel), light=_gather(ks, sel), omega=_gather(om, sel), W=W, M=M)
 
     def shade(self, res: Any, rec: Any, lights: LightSampler, transmittance: Any, grid: Any,
