@@ -80,6 +80,26 @@ def score(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float
             "mean_ratio_oidn": float(den.mean() / ref.mean()), "flip_oidn": hdr_flip(den, ref)}
 
 
+def mean_score(frames, ref: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """:func:`score` averaged over ``frames`` (each ``(H, W, 3)``)."""
+    scores = [score(f, ref, mask) for f in frames]
+    return {k: float(np.mean([s[k] for s in scores])) for k in scores[0]}
+
+
+def parse_spec(spec: str) -> tuple[str, list[str]]:
+    """A scene type ``name`` or ``name:override,override`` as ``(name, overrides)``."""
+    name, _, more = spec.partition(":")
+    return name, [o for o in more.split(",") if o]
+
+
+def nrc_overrides(name: str, args, extra=(), defaults=()) -> list[str]:
+    """1-spp NRC frames of the scene type's static camera (eager, RIS light selection, no TensorBoard,
+    ``--nrc-frames`` frames): ``defaults`` (which ``--extra`` may override), then ``--extra``, then ``extra``."""
+    return [*PRESETS[name], "renderer=nrc", "renderer.backend=eager", "renderer.light_selection=ris",
+            "renderer.log.tensorboard=false", f"frames={args.nrc_frames}", "scene.integrator.spp=1", *defaults,
+            *args.extra, *extra]
+
+
 def bench_scene(name: str, args, log) -> dict:
     base = [*PRESETS[name], *COMMON, *args.extra]
     ref = reference(name, base, args, log)
@@ -104,8 +124,7 @@ def bench_scene(name: str, args, log) -> dict:
                                    "scene.integrator.seed=1"], on_pass)
             times = list(np.diff(stamps))
             out.setdefault("reuse_metrics", {})[mode] = {k: v for k, v in res.metrics.items() if k.startswith("reuse")}
-        scores = [score(f, ref, mask) for f in frames[args.warmup:]]
-        row = {k: float(np.mean([s[k] for s in scores])) for k in scores[0]}
+        row = mean_score(frames[args.warmup:], ref, mask)
         row["seconds_per_frame"] = float(np.median(times[args.warmup:] if mode != "none" else times))
         out["modes"][mode] = row
         log(f"{name} {mode}: " + ", ".join(f"{k} {v:.4g}" for k, v in row.items()))
@@ -160,8 +179,7 @@ def bench_nrc(name: str, args, log) -> dict:
     equal time (raw relMSE and variance scaled by the seconds per frame)."""
     from nrc.render.radiance_caching import NRCRenderer
 
-    base = [*PRESETS[name], "renderer=nrc", "renderer.backend=eager", "renderer.light_selection=ris",
-            "renderer.log.tensorboard=false", f"frames={args.nrc_frames}", "scene.integrator.spp=1", *args.extra]
+    base = nrc_overrides(name, args)
     ref = np.load(args.out / f"ref_{name}_{args.ref_spp}.npy")
     cfg = compose(base)
     mask = medium_mask(medium_alpha(load_scene(cfg.scene)))
@@ -173,8 +191,7 @@ def bench_nrc(name: str, args, log) -> dict:
         frames = []
         res = NRCRenderer(load_scene(cfg.scene), cfg).render(on_frame=lambda f, img, o, st: frames.append(img))
         kept = np.stack(frames[args.nrc_warmup:])
-        scores = [score(f, ref, mask) for f in kept]
-        row = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
+        row = mean_score(kept, ref, mask)
         row["rel_var_frames"] = float((kept.var(0, ddof=1) / (kept.mean(0) ** 2 + 0.01))[mask].mean())
         # the frames' mean against the reference: the error no per-frame noise reduction removes (the cache's
         # bias, plus the mean's own noise, var / frames)
@@ -206,8 +223,7 @@ def decompose_scene(spec: str, args, log) -> dict:
 
     from nrc.render.wavefront.reuse import ReservoirReuse, VertexRecord
 
-    name, _, more = spec.partition(":")
-    extra = [o for o in more.split(",") if o]
+    name, extra = parse_spec(spec)
     passes = args.frames
     cfg = compose([*PRESETS[name], *COMMON, *args.extra, *extra, "renderer.reuse.mode=spatial",
                    f"scene.integrator.spp={passes}", "scene.integrator.seed=1"])
@@ -278,8 +294,8 @@ class _RecordingReuse:
 
     def frame(self, rec, camera, lights, transmittance, grid, majorants, gen, batch):
         t0 = time.perf_counter()
-        own = self.inner.shade(self.inner._initial(rec, camera, lights, self.gen), rec, lights, transmittance, grid,
-                               majorants, self.gen, batch)
+        res = self.inner.frame_initial(rec, camera, lights, self.gen)
+        own = self.inner.shade(res, rec, lights, transmittance, grid, majorants, self.gen, batch)
         self.s_own.append(time.perf_counter() - t0)
         out, stats = self.inner.frame(rec, camera, lights, transmittance, grid, majorants, gen, batch)
         self.own.append(own.cpu().numpy())
@@ -312,9 +328,7 @@ def decompose_nrc(name: str, args, log) -> dict:
 
     pt_base = [*PRESETS[name], *COMMON, *args.extra]
     ref = reference(name, pt_base, args, log)
-    cfg = compose([*PRESETS[name], "renderer=nrc", "renderer.backend=eager", "renderer.light_selection=ris",
-                   "renderer.log.tensorboard=false", f"frames={args.nrc_frames}", "scene.integrator.spp=1",
-                   "renderer.reuse.mode=spatiotemporal", *args.extra])
+    cfg = compose(nrc_overrides(name, args, defaults=["renderer.reuse.mode=spatiotemporal"]))
     scene = load_scene(cfg.scene)
     mask = medium_mask(medium_alpha(scene))
     r = NRCRenderer(scene, cfg)
@@ -346,8 +360,7 @@ def decompose_nrc(name: str, args, log) -> dict:
     s_own = float(np.median(rec.s_own[w:]))
     t_frame, t_st = float(np.median(times[w:])) - s_own, float(np.median(t_reuse[w:]))
     for mode, v in frames.items():
-        scores = [score(f.reshape(hw), ref, mask) for f in v]
-        row = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
+        row = mean_score(v.reshape(-1, *hw), ref, mask)
         row["rel_var_frames"] = rel_var(v)
         row["seconds_per_frame"] = t_frame if mode == "spatiotemporal" else t_frame - t_st + s_own
         out["modes"][mode] = row
@@ -377,15 +390,12 @@ def oracle_nrc(spec: str, args, log) -> dict:
     by the seconds per frame (the oracle's are the reuse run's without its reuse pass)."""
     from nrc.render.radiance_caching import NRCRenderer
 
-    name, _, more = spec.partition(":")
-    extra = [o for o in more.split(",") if o]
+    name, extra = parse_spec(spec)
     # the reference depends on the scene only: the spec's scene.* overrides go into it (and its file name)
     scene_extra = [o for o in extra if o.startswith("scene.")]
-    tag = name + "".join(f"_{zlib.crc32(' '.join(scene_extra).encode()):08x}" for _ in scene_extra[:1])
+    tag = f"{name}_{zlib.crc32(' '.join(scene_extra).encode()):08x}" if scene_extra else name
     ref = reference(tag, [*PRESETS[name], *COMMON, *args.extra, *scene_extra], args, log)
-    base = [*PRESETS[name], "renderer=nrc", "renderer.backend=eager", "renderer.light_selection=ris",
-            "renderer.log.tensorboard=false", f"frames={args.nrc_frames}", "scene.integrator.spp=1", *args.extra,
-            *extra]
+    base = nrc_overrides(name, args, extra)
     w = args.nrc_warmup
     scene = load_scene(compose(base).scene)
     mask = medium_mask(medium_alpha(scene))
@@ -416,8 +426,7 @@ def oracle_nrc(spec: str, args, log) -> dict:
     out: dict = {"scene": spec, "renderer": "nrc", "reuse": NRC_VARIANTS[ORACLE_REUSE], "frames_scored": len(own),
                  "single_scatter_share": float(exact[m].mean() / run["img"].mean(0)[m].mean()), "estimators": {}}
     for key, (frames, secs) in estimators.items():
-        scores = [score(f.reshape(hw), ref, mask) for f in frames]
-        row = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
+        row = mean_score(frames.reshape(-1, *hw), ref, mask)
         row["rel_mse_of_mean"] = rel_mse(frames.mean(0).reshape(hw), ref, mask)
         row["seconds_per_frame"] = secs
         out["estimators"][key] = row

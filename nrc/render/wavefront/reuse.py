@@ -512,7 +512,7 @@ class ReservoirReuse:
             valid = int(rec.valid.sum()) if rec is not None else 0
             return torch.zeros(n, 3, device=grid.device), {"reuse_vertices": valid,
                                                            "time_reuse_s": time.perf_counter() - t0}
-        cur = self._initial(rec, camera, lights, gen)
+        cur = self.frame_initial(rec, camera, lights, gen)
         valid = cur.valid
         n_valid = max(int(valid.sum()), 1)
         stats: dict[str, Any] = {"reuse_vertices": int(valid.sum())}
@@ -530,8 +530,10 @@ class ReservoirReuse:
         stats["time_reuse_s"] = time.perf_counter() - t0
         return out, stats
 
-    def _initial(self, rec: VertexRecord | None, camera: Any, lights: LightSampler,
-                 gen: torch.Generator) -> Reservoirs:
+    def frame_initial(self, rec: VertexRecord | None, camera: Any, lights: LightSampler,
+                      gen: torch.Generator) -> Reservoirs:
+        """The frame's initial reservoirs, one per sample slot (the light domain: :meth:`initial` at the
+        recorded vertices; the distance domain: on the camera rays)."""
         return self.initial(rec, lights, gen)
 
     def state_dict(self) -> dict[str, Any] | None:
@@ -753,7 +755,7 @@ class DistanceReuse(ReservoirReuse):
         return self._dtarget(lights, r.t, r.light, r.omega, at)[0]
 
     # ------------------------------------------------------------------ the pass
-    def _initial(self, rec: Any, camera: Any, lights: LightSampler, gen: torch.Generator) -> DistanceReservoirs:
+    def frame_initial(self, rec: Any, camera: Any, lights: LightSampler, gen: torch.Generator) -> DistanceReservoirs:
         return self.initial(camera, camera.num_pixels * self.spp, lights, gen)
 
     def initial(self, camera: Any, n: int, lights: LightSampler, gen: torch.Generator) -> DistanceReservoirs:
