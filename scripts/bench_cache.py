@@ -209,6 +209,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
+    parser.add_argument("--markdown", type=Path, help="also write the section to this file")
     args = parser.parse_args()
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -219,6 +220,8 @@ def main() -> None:
     section = run(widths, depths, reps, args.device, command)
     if not args.no_write:
         write_section(section, REPO / "docs" / "benchmarks.md")
+    if args.markdown is not None:
+        args.markdown.write_text(section)
     print("\n" + section)
 
 

@@ -28,7 +28,9 @@ from nrc.scene import load_scene  # noqa: E402
 
 VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"  # ../shared/data/ from the repo root
 
-SIDE_LIT = ["scene=sun_front", "scene.volume.source=vdb", f"scene.volume.path={VDB}", "scene.volume.density_scale=0.6",
+
+def side_lit(vdb: Path) -> list[str]:
+    return ["scene=sun_front", "scene.volume.source=vdb", f"scene.volume.path={vdb}", "scene.volume.density_scale=0.6",
             "scene.lights.0.direction=[-1.0,-0.25,0.0]", "scene.lights.0.irradiance=[3.0,3.0,3.0]"]
 
 
@@ -41,11 +43,12 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=90)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path)
-    ap.add_argument("overrides", nargs="*")
+    ap.add_argument("--vdb", type=Path, default=VDB, help="the Disney cloud (default: ../shared/data/)")
+    ap.add_argument("overrides", nargs="*", help="config overrides, e.g. device=cuda")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    cfg = compose(["renderer=nrc", *SIDE_LIT, f"scene.camera.width={args.width}", f"scene.camera.height={args.height}",
+    cfg = compose(["renderer=nrc", *side_lit(args.vdb), f"scene.camera.width={args.width}", f"scene.camera.height={args.height}",
                    f"frames={args.frames}", f"renderer.backend={args.backend}", "renderer.log.tensorboard=false",
                    *args.overrides])
     renderer = NRCRenderer(load_scene(cfg.scene), cfg)
@@ -54,7 +57,7 @@ def main() -> None:
     h = result.metrics["history"]
     stages = {k: statistics.median(h[f"time_{k}_s"][args.skip:]) for k in ("trace", "infer", "train", "frame")}
     startup = sum(h.get("time_compile_s", []))
-    out = {"backend": result.metrics["backend"], "backend_reason": result.metrics["backend_reason"],
+    out = {"device": str(cfg.device), "backend": result.metrics["backend"], "backend_reason": result.metrics["backend_reason"],
            "threads": args.threads, "size": [args.width, args.height], "frames": args.frames,
            "median_s": stages, "startup_s": startup, "process_s": total,
            "image_mean": float(result.image.mean())}

@@ -17,7 +17,8 @@ REPO = Path(__file__).resolve().parent.parent
 CONF_DIR = REPO / "conf"
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
 
-torch.set_num_threads(2)
+# One intra-op thread per worker under pytest-xdist (two workers on two cores), else two.
+torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 # Past Dynamo's recompile limit a compiled step would silently run eagerly: in the tests that is an error.
 torch._dynamo.config.fail_on_recompile_limit_hit = True
 # The suite's compiles go to a cache of its own (renderer.backend=auto reads the cache to choose: a user's warm

@@ -49,6 +49,7 @@ def test_app_reports_bad_input_in_one_line(tmp_path, override, message):
     assert "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_default_scene_preview_shows_the_cloud(tmp_path):
     """The default scene's preview (auto exposure, ACES) at a quarter of the default size: the cloud covers a
     quarter of the frame or more, the mean display luminance is mid-grey, almost nothing clips."""
@@ -102,6 +103,7 @@ def test_app_runs_the_nrc_frame_loop(tmp_path):
     assert metrics["first_frame"] == 3 and len(metrics["loss_per_frame"]) == 5
 
 
+@pytest.mark.slow
 def test_multirun_sweeps_with_the_joblib_launcher(tmp_path):
     """`-m` sweeps run each job into its own directory, in parallel processes with hydra/launcher=joblib."""
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
@@ -147,6 +149,7 @@ def test_a_wheel_install_runs_outside_the_checkout(tmp_path):
     assert str(env_dir) in where  # the packaged configs, not the checkout's
 
 
+@pytest.mark.slow
 def test_multirun_with_the_submitit_launcher(tmp_path):
     """`hydra/launcher=submitit_local` (the `cluster` extra) runs the real submitit executor: two jobs."""
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")

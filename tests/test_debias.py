@@ -48,6 +48,7 @@ def pt_oracle():
     return render_images(ORACLE, SEEDS, "pt")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("target", ["full", "indirect"])
 def test_q1_with_a_zero_cache_is_the_path_tracer(target):
     """q = 1: every render path goes on past its cache termination (at vertex 1) to ``max_scatter``, so the image
@@ -67,7 +68,7 @@ def test_q1_cancels_any_cache():
         np.testing.assert_array_equal(x, y)
 
 
-@pytest.mark.parametrize("q", [0.25, 1.0])
+@pytest.mark.parametrize("q", [pytest.param(0.25, marks=pytest.mark.slow), 1.0])
 def test_oracle_cache_every_q_gives_the_path_tracers_mean(q, pt_oracle):
     nrc = render_images([*AT_ORACLE, *debias(q)], SEEDS, "nrc", sun_oracle)
     assert_images_agree(nrc, pt_oracle)
@@ -79,6 +80,7 @@ def test_oracle_cache_q0_gives_the_oracle_image(pt_oracle):
     assert_images_agree(render_images(AT_ORACLE, SEEDS, "nrc", sun_oracle), pt_oracle)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("target", ["full", "indirect"])
 def test_a_wrong_cache_is_unbiased_with_q_and_biased_without(target, pt_oracle):
     """The oracle x 0.5 (under ``indirect`` the cache holds the indirect light, 0 at the last vertex of this
@@ -93,6 +95,7 @@ def test_a_wrong_cache_is_unbiased_with_q_and_biased_without(target, pt_oracle):
         assert_images_agree(biased, pt_oracle)
 
 
+@pytest.mark.slow
 def test_a_wrong_cache_is_unbiased_under_sun_and_sky_with_the_indirect_target():
     """The default target on sun + sky, terminating at vertex 1 into a constant (wrong) cache, q = 0.3: the image
     agrees with the path tracer to the same ``max_scatter``; q = 0 does not."""
@@ -161,6 +164,7 @@ def test_bad_debias_settings_name_the_key(override, message):
         NRCRenderer(load_scene(cfg.scene), cfg)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("target", ["full", "indirect"])
 def test_debias_composes_with_reservoir_reuse(target):
     """Reuse at vertex 1, where the render paths terminate: a continued path's reused estimate carries 1/q and the

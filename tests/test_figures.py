@@ -9,6 +9,7 @@ import pytest
 pytest.importorskip("imageio")
 
 
+@pytest.mark.slow
 def test_make_figures_writes_every_figure_with_consistent_numbers(tmp_path):
     from PIL import Image, ImageSequence
 

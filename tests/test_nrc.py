@@ -112,7 +112,7 @@ ZERO = [*SMALL, "scene=sun_sky", "scene.volume.albedo=0.9", "scene.integrator.sp
 FULL = ["renderer.cache_target=full"]  # NRC only: the oracle is the full scattered radiance
 
 
-@pytest.mark.parametrize("backend", ["eager", "step"])
+@pytest.mark.parametrize("backend", ["eager", pytest.param("step", marks=pytest.mark.slow)])
 def test_oracle_cache_makes_nrc_unbiased(backend):
     """Paths may stop only at their last allowed vertex (2), where the exact radiance is single scattering;
     there they stop with probability 1/2 (and otherwise finish as the path tracer does). With that oracle
@@ -124,6 +124,7 @@ def test_oracle_cache_makes_nrc_unbiased(backend):
     assert_images_agree(nrc, pt)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["eager", "step"])
 def test_zero_cache_is_a_truncated_path_tracer(backend):
     """Terminating at vertex m into a zero cache is the path tracer with max_scatter = m - 1 (sun and sky,
@@ -134,6 +135,7 @@ def test_zero_cache_is_a_truncated_path_tracer(backend):
     assert_images_agree(nrc, pt)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["eager", "step"])
 def test_zero_indirect_cache_is_a_path_tracer_to_the_terminal_vertex(backend):
     """``cache_target=indirect``: terminating at vertex m into a zero cache keeps vertex m's direct light (next-event
@@ -154,6 +156,7 @@ THREE_LIGHTS = ["scene.lights=[{type:directional,direction:[-0.6,-0.55,-0.35],ir
                 "{type:point,position:[0,-42,30],intensity:[60000,40000,30000]}]"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["eager", "step"])
 def test_zero_indirect_cache_with_ris_and_equiangular_is_a_path_tracer(backend):
     """The same property with the light sampling of issue 16 on the NRC side only: RIS over a sun, a sky and a
@@ -347,6 +350,7 @@ TRAIN = ["scene.volume.procedural.resolution=32", "scene.camera.width=32", "scen
          "renderer.log.image_every=5"]
 
 
+@pytest.mark.slow
 def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
     """20 frames of online training lower the loss; resuming from the frame-10 checkpoint replays frames
     10..19 exactly (every frame has its own seed; weights, Adam, EMA and ring buffer are restored)."""

@@ -90,7 +90,7 @@ HARD = [
     ["scene.volume.g=0.999"],
     ["scene.volume.g=0.0"],
     ["scene.volume.density_scale=0"],
-    ["scene.volume.density_scale=10000", "scene.integrator.max_scatter=4"],
+    pytest.param(["scene.volume.density_scale=10000", "scene.integrator.max_scatter=4"], marks=pytest.mark.slow),
     ["scene=point", "scene.camera.position=[0,-15,5]"],  # camera and point light inside the volume
     ["scene=sun_sky", "scene.camera.position=[50,50,120]", "scene.camera.look_at=[50,50,0]"],  # grazing the box
 ]
@@ -104,7 +104,7 @@ def test_hard_cases_stay_finite(overrides):
     assert np.isfinite(img).all() and (img >= 0).all()
 
 
-@pytest.mark.parametrize("kind", ["empty", "spike"])
+@pytest.mark.parametrize("kind", ["empty", pytest.param("spike", marks=pytest.mark.slow)])
 def test_degenerate_grids_stay_finite(kind):
     density = torch.zeros(9, 9, 9)
     if kind == "spike":
@@ -157,6 +157,7 @@ THREE_LIGHTS = ["scene=sun_sky", "scene.volume.procedural.resolution=24", "scene
                 "{type:environment,radiance:[0.05,0.08,0.15],path:null,scale:1.0}]"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("structure", ["eager", "step"])
 def test_power_light_selection_agrees_with_uniform(structure):
     """``renderer.light_selection=power`` changes only the noise: sun, point light and sky (selection

@@ -156,7 +156,7 @@ HARD = [
     ["scene.volume.g=-0.999"],
     ["scene.volume.g=0.999"],
     ["scene.volume.density_scale=4", "scene.integrator.max_scatter=4"],  # ~700 steps per crossing
-    ["scene.volume.density_scale=10000", "scene.integrator.max_scatter=4"],  # single-voxel bricks
+    pytest.param(["scene.volume.density_scale=10000", "scene.integrator.max_scatter=4"], marks=pytest.mark.slow),  # single-voxel bricks
     ["renderer.free_flight=global", "renderer.brick=2"],  # two tables: global free flights, brick shadow rays
     ["scene=point", "scene.camera.position=[0,-15,5]"],  # camera and point light inside the volume
     ["renderer.russian_roulette.enabled=true", "renderer.russian_roulette.start=1"],
@@ -245,6 +245,7 @@ def test_latlong_environment_falls_back_with_a_reason(tmp_path):
 CASES = {"sun_sky": [], "point": ["scene.lights.0.position=[30,70,40]"]}
 
 
+@pytest.mark.slow
 @pytest.mark.mitsuba
 @pytest.mark.parametrize("preset", list(CASES))
 def test_state_machine_matches_mitsuba(preset, single_thread):

@@ -11,7 +11,7 @@ mitsuba_bridge = pytest.importorskip("nrc.evaluation.mitsuba_bridge")
 if not mitsuba_bridge.mitsuba_available():
     pytest.skip("Mitsuba 3 is not installed (pip install mitsuba==3.9.1)", allow_module_level=True)
 
-pytestmark = pytest.mark.mitsuba
+pytestmark = [pytest.mark.mitsuba, pytest.mark.slow]
 
 SEEDS = 4  # independent renders per side: the standard errors come from their spread
 

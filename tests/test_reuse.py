@@ -192,6 +192,7 @@ def _single_scattering(scene, lights: LightSampler, jitters: int = 6, steps: int
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["spatial", "spatiotemporal"])
 def test_distance_reuse_is_unbiased_against_quadrature(mode, monkeypatch):
     """``domain=distance`` (pairs of a camera-ray distance and a light sample) on 16 point lights and a sky,
@@ -372,6 +373,7 @@ def test_path_tracer_with_reuse_agrees_with_the_path_tracer(scene, mode, target,
     assert_images_agree(reuse, plain)
 
 
+@pytest.mark.slow
 def test_compiled_step_structure_with_distance_reuse_agrees_with_the_eager_step():
     """The compiled backend's step structure (run eagerly: the code the compiled backend compiles) with
     ``domain=distance``, whose first vertex does no next-event estimate and does not count the sky its phase
@@ -443,6 +445,7 @@ def test_reuse_with_no_light_left_to_sample_adds_nothing_and_runs():
     assert res.metrics["nee_lights"] == 0 and res.metrics["reuse_vertices"] > 0
 
 
+@pytest.mark.slow
 def test_bench_reuse_decomposition_runs_on_a_tiny_scene(tmp_path):
     """``scripts/bench_reuse.py --decompose`` on a tiny scene: the direct light's share is a fraction, every
     variant's figures are finite and positive, each variant's direct light has about the own RIS's mean, and
@@ -468,6 +471,7 @@ def test_bench_reuse_decomposition_runs_on_a_tiny_scene(tmp_path):
     assert md.count("spatiotemporal/") == 2 and "none (own RIS)" in md
 
 
+@pytest.mark.slow
 def test_bench_reuse_oracle_runs_on_a_tiny_scene(tmp_path):
     """``scripts/bench_reuse.py --oracle-nrc`` on a tiny scene: four estimators scored (none, own, reuse,
     oracle), finite figures, the single-scatter share a fraction, the oracle no slower than the reuse run, and a

@@ -52,7 +52,7 @@ def _estimate(table: LightTable, x: torch.Tensor, d: torch.Tensor, n: int, seed:
     return torch.stack(weight, 1) * phase_of(wi)[:, None]
 
 
-@pytest.mark.parametrize("candidates", [1, 2, 8, 32])
+@pytest.mark.parametrize("candidates", [1, 2, 8, pytest.param(32, marks=pytest.mark.slow)])
 def test_ris_is_unbiased_against_the_sum_over_all_lights(candidates):
     """The mean of the RIS estimate equals the brute-force sum at three points (inside the box, near a light,
     at a corner), within 4.5 standard errors, for every ``M`` (``M = 1`` is the power selection)."""

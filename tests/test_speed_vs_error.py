@@ -61,6 +61,7 @@ def test_equal_time_ratio_and_crossover(sve):
     assert c["crossover_time_s"] == 3.0 and c["crossover_at_or_before"]
 
 
+@pytest.mark.slow
 def test_smoke_two_configs_both_modes(sve, tmp_path):
     second = ("nrc_tiny=renderer=nrc,encoding=triangle_oneblob,renderer.training.width=8,renderer.training.height=8,"
               "cache.network.n_neurons=16,cache.network.n_hidden_layers=2") if nrc_available() else \
@@ -102,6 +103,7 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
         assert "Equal time per frame" in md
 
 
+@pytest.mark.slow
 def test_denoised_twins_and_both_baselines(sve, tmp_path):
     """--denoise: every single-frame configuration and every accumulated point gets a `+oidn` twin whose time
     includes the denoise time, and NRC is compared with both the raw and the denoised path tracer (equal-time
