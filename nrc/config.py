@@ -145,13 +145,62 @@ class ConfigReader:
 
 
 def compose(overrides: Sequence[str] | None = None, return_hydra_config: bool = False) -> Any:
-    """The app config (``conf/config.yaml``) with ``overrides`` applied, as ``python -m nrc`` would see it."""
+    """The app config (``conf/config.yaml``) with ``overrides`` applied, as ``python -m nrc`` would see it.
+
+    Hydra composes the config groups an override list picks (``scene=sun_sky``, ``renderer=nrc``,
+    ``+experiment=...``), then applies the value overrides (``scene.integrator.seed=3``, ``+key=v``, ``~key``) to
+    the result. The first part is cached per list of group overrides (composing reads and merges a dozen YAML
+    files, ~0.1 s); the second is Hydra's own code on a copy, ~5 ms: the same config, 20x faster for the scripts and
+    tests that compose hundreds of configs. Anything else (``hydra/...`` groups, package overrides, the Hydra node
+    asked for, or any error) goes through Hydra's ``compose`` whole, so its errors are Hydra's.
+    """
+    overrides = list(overrides or [])
+    if not return_hydra_config:
+        fast = _compose_cached(overrides)
+        if fast is not None:
+            return fast
+    return _hydra_compose(overrides, return_hydra_config)
+
+
+def _hydra_compose(overrides: list[str], return_hydra_config: bool = False) -> Any:
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return hydra_compose(config_name="config", overrides=list(overrides or []),
-                             return_hydra_config=return_hydra_config)
+        return hydra_compose(config_name="config", overrides=overrides, return_hydra_config=return_hydra_config)
+
+
+_GROUPS_COMPOSED: dict[tuple[str, ...], Any] = {}  # group overrides -> their composed config (never handed out)
+_GROUPS_KEPT = 64
+
+
+def _compose_cached(overrides: list[str]) -> Any:
+    """:func:`compose` through the cache of group compositions, or None where that path does not apply."""
+    import copy
+
+    try:
+        from hydra._internal.config_loader_impl import ConfigLoaderImpl
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+
+        parsed = OverridesParser.create().parse_overrides(overrides)
+        groups, values = [], []
+        for o in parsed:
+            if o.key_or_group.startswith("hydra") or o.package is not None:
+                return None
+            is_group = (Path(CONF_DIR) / o.key_or_group).is_dir()
+            (groups if is_group else values).append(o)
+        key = tuple(o.input_line for o in groups)
+        base = _GROUPS_COMPOSED.get(key)
+        if base is None:
+            base = _hydra_compose(list(key))
+            _GROUPS_COMPOSED[key] = base
+            while len(_GROUPS_COMPOSED) > _GROUPS_KEPT:
+                del _GROUPS_COMPOSED[next(iter(_GROUPS_COMPOSED))]
+        cfg = copy.deepcopy(base)
+        ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
+        return cfg
+    except Exception:  # noqa: BLE001 -- Hydra's compose says what is wrong, in its own words
+        return None
 
 
 def absolute_paths(cfg: Any) -> None:
