@@ -31,7 +31,6 @@ def test_blobs_is_the_original_generator():
     assert float(d[0].max()) == 0.0 and float(d[:, :4].max()) == 0.0  # empty border, flat base
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["cumulus", "stratocumulus"])
 def test_box_is_tight_around_the_density(kind):
     """One empty voxel on every face, and density in the layer next to it: the box holds the cloud only."""
@@ -60,7 +59,6 @@ def _surface_to_volume(d: torch.Tensor) -> float:
     return faces / ((36 * math.pi) ** (1 / 3) * int(m.sum()) ** (2 / 3))
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_cumulus_surface_is_billowed_not_smooth(seed):
     """Cellular erosion at two scales folds the surface: far more surface per volume than the smooth union of
@@ -69,7 +67,6 @@ def test_cumulus_surface_is_billowed_not_smooth(seed):
         procedural_cloud(64, seed, "blobs"))
 
 
-@pytest.mark.slow
 def test_stratocumulus_is_a_thin_broken_deck():
     d = procedural_cloud(96, seed=0, kind="stratocumulus")
     nx, ny, nz = d.shape
@@ -78,7 +75,6 @@ def test_stratocumulus_is_a_thin_broken_deck():
     assert 0.4 < float(cover) < 0.95
 
 
-@pytest.mark.slow
 def test_another_resolution_samples_the_same_cloud():
     lo = procedural_cloud(48, seed=0, kind="cumulus")
     hi = procedural_cloud(96, seed=0, kind="cumulus")
