@@ -51,6 +51,50 @@ def ignored_settings(cfg: DictConfig) -> list[str]:
     return warnings
 
 
+def preflight(cfg: DictConfig) -> None:
+    """Every value that can be checked before any work starts, in one place (one ``ConfigError`` / ``NRCError``
+    naming the key or file): ``frames``, ``device``, the display and denoise settings, the renderer's settings,
+    the NRC cache groups, and the files the run will read (the volume, environment maps, ``renderer.reference``
+    and ``renderer.resume``). The scene's own values are checked by ``load_scene`` as it builds them."""
+    from nrc.config import ConfigReader
+    from nrc.denoise import denoiser_from_config
+    from nrc.errors import ConfigError
+    from nrc.io.png import DisplaySettings
+    from nrc.render.registry import check_settings
+
+    root = ConfigReader({k: cfg.get(k) for k in ("frames",)}, "")
+    root.get_int("frames", 30, lo=1)
+    resolve_device(cfg.get("device", "cpu"))
+    DisplaySettings.from_config(cfg)
+    denoiser_from_config(cfg)
+    renderer = cfg.get("renderer")
+    if not OmegaConf.is_dict(renderer):
+        raise ConfigError(f"renderer must be a config block (renderer=pt|nrc|preview), got {renderer!r}")
+    name = renderer.get("name")
+    check_settings(name, renderer)
+    if name == "nrc":
+        for group in ("cache", "encoding", "extra_inputs", "batch_filter"):
+            if cfg.get(group) is None:
+                raise ConfigError(f"renderer=nrc needs the config group '{group}' (see conf/config.yaml)")
+    files = []
+    scene = cfg.get("scene")
+    vol = scene.get("volume") if OmegaConf.is_dict(scene) else None
+    if OmegaConf.is_dict(vol) and vol.get("source") in ("vdb", "npz") and isinstance(vol.get("path"), str) \
+            and vol.get("path"):
+        files.append(("scene.volume.path", vol.path))
+    lights = scene.get("lights") if OmegaConf.is_dict(scene) else None
+    for i, light in enumerate(lights if OmegaConf.is_list(lights) else []):
+        if OmegaConf.is_dict(light) and isinstance(light.get("path"), str) and light.get("path"):
+            files.append((f"scene.lights[{i}].path", light.path))
+    for key in ("reference", "resume"):
+        if isinstance(renderer.get(key), str) and renderer.get(key):
+            files.append((f"renderer.{key}", renderer[key]))
+    for key, path in files:
+        if not Path(path).is_file():
+            what = "no such file" if not Path(path).exists() else "not a file"
+            raise ConfigError(f"{key}={path}: {what}")
+
+
 def _write(what: str, path: Path, write: Any) -> None:
     try:
         write()
@@ -69,6 +113,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
 
     from nrc.denoise import clamp_bias, denoise, denoiser_from_config, oidn_version
 
+    preflight(cfg)
     display = DisplaySettings.from_config(cfg)
     denoiser = denoiser_from_config(cfg)
     for warning in ignored_settings(cfg):
@@ -182,6 +227,9 @@ def run_dir_problem(argv: list[str]) -> str | None:
     fail with a traceback."""
     import os
 
+    if any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--shell-completion", "-sc")
+           or a.startswith(("--cfg=", "--info=")) for a in argv):
+        return None  # nothing will be written
     key = "hydra.sweep.dir=" if any(a in ("-m", "--multirun") for a in argv) else "hydra.run.dir="
     given = [a.split("=", 1)[1] for a in argv if a.startswith(key)]
     target = Path(given[-1] if given else "outputs").expanduser()
@@ -195,6 +243,12 @@ def run_dir_problem(argv: list[str]) -> str | None:
         return f"cannot create the run directory {target}: {probe} is a file"
     if not os.access(probe, os.W_OK):
         return f"cannot create the run directory {target}: {probe} is not writable (set {key}<a writable path>)"
+    if "$" in str(target):  # an interpolation Hydra resolves later: not a path to create here
+        return None
+    try:  # the run would create it anyway; some file systems refuse what os.access allows (/proc, read-only mounts)
+        target.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot create the run directory {target}: {exc.strerror or exc} (set {key}<a writable path>)"
     return None
 
 

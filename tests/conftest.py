@@ -24,6 +24,9 @@ torch._dynamo.config.fail_on_recompile_limit_hit = True
 # The suite's compiles go to a cache of its own (renderer.backend=auto reads the cache to choose: a user's warm
 # cache must not change what the tests run).
 os.environ["TORCHINDUCTOR_CACHE_DIR"] = tempfile.mkdtemp(prefix="nrc-test-inductor-")
+# Generated clouds are cached on disk (nrc/io/disk_cache.py): the suite's own, shared by its tests (and by the
+# subprocesses they start), never a user's.
+os.environ["NRC_CACHE_DIR"] = tempfile.mkdtemp(prefix="nrc-test-cache-")
 
 
 @pytest.fixture

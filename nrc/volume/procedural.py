@@ -31,9 +31,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from nrc.io.disk_cache import cached_array
 
 KINDS = ("cumulus", "stratocumulus", "blobs")
 ASPECT = {"cumulus": (1.0, 0.8, 1.0), "stratocumulus": (1.0, 0.25, 1.0), "blobs": (1.0, 1.0, 1.0)}
@@ -292,11 +295,16 @@ def procedural_cloud(resolution: tuple[int, int, int] | list[int] | int = 128, s
     if kind not in _GENERATORS:
         raise ValueError(f"procedural cloud kind must be one of {', '.join(KINDS)}, got {kind!r}")
     res = _resolution(resolution, ASPECT[kind])
-    gen = torch.Generator().manual_seed(int(seed))
-    density = _GENERATORS[kind](res, gen)
-    if kind != "blobs":
-        density = crop_to_density(density)
-    return density.contiguous()
+
+    def generate() -> np.ndarray:
+        gen = torch.Generator().manual_seed(int(seed))
+        density = _GENERATORS[kind](res, gen)
+        if kind != "blobs":
+            density = crop_to_density(density)
+        return density.contiguous().numpy()
+
+    # Kept on disk (nrc/io/disk_cache.py): the cumulus at 128 takes seconds to make, milliseconds to read.
+    return torch.from_numpy(cached_array("procedural", (kind, res, int(seed)), [__file__], generate))
 
 
 def clear_pocket(grid, centre, radius: float) -> Tensor:
