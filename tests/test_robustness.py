@@ -197,3 +197,41 @@ def test_sigterm_checkpoints_and_the_resumed_run_equals_an_uninterrupted_one(tmp
     a, _ = read_exr(tmp_path / "resumed" / "image.exr")
     b, _ = read_exr(tmp_path / "whole" / "image.exr")
     np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("renderer", ["pt", "nrc"])
+def test_ctrl_c_during_a_compile_stops_within_seconds(tmp_path, renderer):
+    """A cold compile says what it does; Ctrl-C (SIGINT to the process group, as a terminal sends it) during it
+    stops the run within seconds with one line, for the path tracer and for NRC before its first frame."""
+    import os
+    import threading
+
+    env = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "inductor"))
+    tiny = TINY if renderer == "nrc" else ["scene.volume.procedural.resolution=16", "scene.camera.width=12",
+                                            "scene.camera.height=8", "scene.integrator.spp=1"]
+    cmd = [sys.executable, "-m", "nrc", f"hydra.run.dir={tmp_path / 'run'}", f"renderer={renderer}",
+           "renderer.backend=compiled", *(a for a in tiny if not a.startswith("renderer=")), "frames=3"]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)  # Hydra logs to stdout, errors go to stderr: both read
+    lines: list[str] = []
+    seen = threading.Event()
+
+    def read() -> None:
+        for line in proc.stdout:
+            lines.append(line)
+            if "compiling the transport step" in line:
+                seen.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    assert seen.wait(120), "".join(lines)[-2000:]
+    time.sleep(2)  # inside the compile (a cold one takes a minute or more)
+    os.killpg(proc.pid, signal.SIGINT)
+    proc.wait(timeout=120)
+    reader.join(10)
+    err = "".join(lines)
+    assert proc.returncode == 130, err[-2000:]
+    assert "interrupted by SIGINT" in err and "Traceback" not in err
+    assert "compiled the transport step in" not in err  # it stopped the compile instead of waiting for it
+    assert not (tmp_path / "run" / "image.exr").exists()

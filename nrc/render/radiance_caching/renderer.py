@@ -91,17 +91,19 @@ logger = logging.getLogger("nrc")
 
 
 class _StopOnSignal:
-    """SIGINT / SIGTERM ask the frame loop to stop after the current frame (``signal`` is set); a second one
-    restores the default handlers and re-raises, stopping at once. Inert outside the main thread."""
+    """SIGINT / SIGTERM ask the frame loop to stop after the current frame (``signal`` is set); a second one, or
+    one before the first frame is done (a compile, say: nothing to save yet), restores the previous handlers and
+    re-raises, stopping at once. Inert outside the main thread."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self) -> None:
         self.signal: int | None = None
+        self.frame_done = False  # set by the loop after its first frame: before it there is nothing to save
         self._old: dict[int, Any] = {}
 
     def _handle(self, signum: int, frame: Any) -> None:
-        if self.signal is not None:
+        if self.signal is not None or not self.frame_done:  # a second signal, or nothing to save (e.g. compiling)
             self._restore()
             signal.raise_signal(signum)
             return
@@ -386,6 +388,7 @@ class NRCRenderer:
                 if on_frame is not None:
                     on_frame(frame, image.cpu().numpy(), out_np, stats)
                 done = frame + 1
+                stop.frame_done = True
                 if stop.signal is not None:
                     self.interrupted = stop.signal
                     break

@@ -13,7 +13,9 @@ directory tells ``backend=auto`` that a compile would be a cache load (:func:`is
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +26,8 @@ from torch import Tensor
 
 from nrc.render.wavefront.step import Transport
 
+log = logging.getLogger(__name__)
+HEARTBEAT_S = 20.0  # a compile says it is still going this often
 MIN_SLOTS = 64  # compaction never goes below this (dynamic-shape kernels specialise sizes 0 and 1)
 # Inductor options. The tracking step is vectorised (SIMD C++); the vertex, which runs on the few percent of
 # slots at a real collision, is not: its vector code generation took about half of a cold compile and bought
@@ -131,14 +135,34 @@ class Machine:
             return 0.0
         marker = _marker(self.step, self.device)
         self.cache_hit = marker.exists()
+        where = inductor_cache_dir()
+        if self.cache_hit:
+            log.info("loading the compiled transport step from %s (a few seconds)", where)
+        else:
+            log.info("compiling the transport step for this light / estimator structure on %s: once, about 1-3 "
+                     "minutes on 2 CPU cores; it is kept in %s, so later runs of any scene of this structure load "
+                     "it in seconds (renderer.backend=eager skips the compile)", self.device.type, where)
+        done = threading.Event()
         t0 = time.perf_counter()
-        layout = self.step.layout
-        F, I = layout.zeros(max(slots, MIN_SLOTS), self.device)
-        self.track(F, I, inputs)
-        k = max(F.shape[1] // 16, 2)
-        self.vertex(F[:, :k].contiguous(), I[:, :k].contiguous(), inputs)
+
+        def heartbeat() -> None:
+            while not done.wait(HEARTBEAT_S):
+                log.info("... still %s the transport step (%.0f s)", "loading" if self.cache_hit else "compiling",
+                         time.perf_counter() - t0)
+
+        threading.Thread(target=heartbeat, daemon=True).start()
+        try:
+            layout = self.step.layout
+            F, I = layout.zeros(max(slots, MIN_SLOTS), self.device)
+            self.track(F, I, inputs)
+            k = max(F.shape[1] // 16, 2)
+            self.vertex(F[:, :k].contiguous(), I[:, :k].contiguous(), inputs)
+        finally:
+            done.set()
         self.startup_s = time.perf_counter() - t0
         marker.touch()
+        if not self.cache_hit:
+            log.info("compiled the transport step in %.0f s (cached for the next run)", self.startup_s)
         return self.startup_s
 
 
