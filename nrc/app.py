@@ -169,7 +169,10 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     if metrics.get("checkpoint"):
         written.append(f"checkpoint.pt (frame {metrics['checkpoint_frame']}, "
                        f"{metrics['checkpoint_bytes'] / 1e6:.1f} MB)")
-    if (out_dir / "tensorboard").is_dir():
+    tb = metrics.get("tensorboard_dir")
+    if tb and Path(tb) != out_dir / "tensorboard":  # a resumed run continues the curves of the run it resumes
+        written.append(f"TensorBoard logs continued in {tb}")
+    elif (out_dir / "tensorboard").is_dir():
         written.append("tensorboard/")
     log.info("wrote %s: %s", out_dir, ", ".join(written))
     return metrics

@@ -489,3 +489,24 @@ def test_spread_rule_terminates_where_the_spread_exceeds_c_a0(tmp_path, margin):
         torch.testing.assert_close(image.reshape(3), at_2, rtol=1e-4, atol=1e-6)
     else:
         assert bool((image.reshape(3) - at_2).abs().max() > 1e-3)
+
+
+def test_a_resumed_run_continues_its_tensorboard_curves(tmp_path):
+    """Resuming writes TensorBoard events into the interrupted run's ``tensorboard/``: one run with one curve
+    over all frames, not two halves in two run directories."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    base = ["renderer=nrc", *SMALL, *NRC_SMALL[:2], "scene.integrator.spp=1", "renderer.backend=eager"]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()  # the app makes its run directory
+    first = NRCRenderer(load_scene(compose(base).scene), compose([*base, "frames=2"]))
+    first.attach_output(tmp_path / "a")
+    assert first.render().metrics["tensorboard_dir"] == str(tmp_path / "a" / "tensorboard")
+    cfg = compose([*base, "frames=4", f"renderer.resume={tmp_path / 'a' / 'checkpoint.pt'}"])
+    resumed = NRCRenderer(load_scene(cfg.scene), cfg)
+    resumed.attach_output(tmp_path / "b")
+    assert resumed.render().metrics["tensorboard_dir"] == str(tmp_path / "a" / "tensorboard")
+    assert not (tmp_path / "b" / "tensorboard").exists()
+    events = EventAccumulator(str(tmp_path / "a" / "tensorboard"))
+    events.Reload()
+    assert [e.step for e in events.Scalars("loss/frame")] == [0, 1, 2, 3]

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import signal
 import threading
 import time
@@ -175,6 +176,7 @@ class NRCRenderer:
         self.lights = st.light_sampling.sampler(scene)
         self.reference = self._load_reference(st.reference)
         self.out_dir: Path | None = None
+        self.tensorboard_dir: Path | None = None
         self.config_yaml = OmegaConf.to_yaml(cfg) if isinstance(cfg, DictConfig) else ""
         self.checkpoint_path: Path | None = None
         self.checkpoint_frame, self.checkpoint_bytes = 0, 0
@@ -353,6 +355,11 @@ class NRCRenderer:
         """Run ``frames`` frames; ``on_frame(frame, image, output, stats)`` is called after each."""
         st, cam = self.settings, self.scene.camera
         log_dir = self.out_dir / "tensorboard" if (self.out_dir is not None and st.tensorboard) else None
+        if log_dir is not None and st.resume is not None:  # continue the interrupted run's curves, in its own logs
+            earlier = Path(st.resume).parent / "tensorboard"
+            if earlier.is_dir() and os.access(earlier, os.W_OK):
+                log_dir = earlier
+        self.tensorboard_dir = log_dir
         log = FrameLog(log_dir, st.image_every, self.display)
         accum = torch.zeros(cam.height, cam.width, 3, device=self.device)
         start, n_accum = 0, 0
@@ -406,6 +413,7 @@ class NRCRenderer:
             "renderer": self.name, "frames": self.frames, "first_frame": start, "spp": self.scene.integrator.spp,
             "accumulate": st.accumulate, "transmittance": self.transmittance.name,
             "termination": st.termination.rule, "cache_target": st.cache_target, "time_frames_s": elapsed,
+            "tensorboard_dir": str(self.tensorboard_dir) if self.tensorboard_dir is not None else None,
             **st.light_sampling.metrics(self.lights), **st.reuse.metrics(self.scene.g), **st.debias.metrics(),
             "shadow_rays": int(sum(h.get("shadow_rays", []))),
             "equiangular_segments": int(sum(h.get("equiangular_segments", []))),
