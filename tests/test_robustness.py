@@ -213,7 +213,10 @@ def test_ctrl_c_during_a_compile_stops_within_seconds(tmp_path, renderer):
     cmd = [sys.executable, "-m", "nrc", f"hydra.run.dir={tmp_path / 'run'}", f"renderer={renderer}",
            "renderer.backend=compiled", *(a for a in tiny if not a.startswith("renderer=")), "frames=3"]
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)  # Hydra logs to stdout, errors go to stderr: both read
+                            start_new_session=True,  # Hydra logs to stdout, errors go to stderr: both read
+                            # as from a terminal: CI and xdist workers may run with SIGINT ignored, which a child
+                            # inherits (and then Python installs no KeyboardInterrupt handler)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines: list[str] = []
     seen = threading.Event()
 
