@@ -51,31 +51,30 @@ def ignored_settings(cfg: DictConfig) -> list[str]:
     return warnings
 
 
-def preflight(cfg: DictConfig) -> None:
+def preflight(cfg: DictConfig) -> tuple[Any, str]:
     """Every value that can be checked before any work starts, in one place (one ``ConfigError`` / ``NRCError``
     naming the key or file): ``frames``, ``device``, the display and denoise settings, the renderer's settings,
     the NRC cache groups, and the files the run will read (the volume, environment maps, ``renderer.reference``
-    and ``renderer.resume``). The scene's own values are checked by ``load_scene`` as it builds them."""
+    and ``renderer.resume``). The scene's own values are checked by ``load_scene`` as it builds them.
+    Returns the display settings and the denoiser, which the run uses."""
     from nrc.config import ConfigReader
     from nrc.denoise import denoiser_from_config
     from nrc.errors import ConfigError
     from nrc.io.png import DisplaySettings
+    from nrc.render.radiance_caching.settings import app_checks
     from nrc.render.registry import check_settings
 
-    root = ConfigReader({k: cfg.get(k) for k in ("frames",)}, "")
-    root.get_int("frames", 30, lo=1)
+    ConfigReader({"frames": cfg.get("frames")}, "").get_int("frames", 30, lo=1)  # renderers other than nrc ignore it
     resolve_device(cfg.get("device", "cpu"))
-    DisplaySettings.from_config(cfg)
-    denoiser_from_config(cfg)
+    display = DisplaySettings.from_config(cfg)
+    denoiser = denoiser_from_config(cfg)
     renderer = cfg.get("renderer")
     if not OmegaConf.is_dict(renderer):
         raise ConfigError(f"renderer must be a config block (renderer=pt|nrc|preview), got {renderer!r}")
     name = renderer.get("name")
     check_settings(name, renderer)
     if name == "nrc":
-        for group in ("cache", "encoding", "extra_inputs", "batch_filter"):
-            if cfg.get(group) is None:
-                raise ConfigError(f"renderer=nrc needs the config group '{group}' (see conf/config.yaml)")
+        app_checks(cfg)
     files = []
     scene = cfg.get("scene")
     vol = scene.get("volume") if OmegaConf.is_dict(scene) else None
@@ -93,6 +92,7 @@ def preflight(cfg: DictConfig) -> None:
         if not Path(path).is_file():
             what = "no such file" if not Path(path).exists() else "not a file"
             raise ConfigError(f"{key}={path}: {what}")
+    return display, denoiser
 
 
 def _write(what: str, path: Path, write: Any) -> None:
@@ -107,15 +107,12 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     """Render the configured scene and write the outputs into ``out_dir``; returns the metrics."""
     from nrc.evaluation.reference import config_hash, medium_alpha
     from nrc.io import write_exr, write_png
-    from nrc.io.png import DisplaySettings
     from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
-    from nrc.denoise import clamp_bias, denoise, denoiser_from_config, oidn_version
+    from nrc.denoise import clamp_bias, denoise, oidn_version
 
-    preflight(cfg)
-    display = DisplaySettings.from_config(cfg)
-    denoiser = denoiser_from_config(cfg)
+    display, denoiser = preflight(cfg)
     for warning in ignored_settings(cfg):
         log.warning(warning)
     out_dir = Path(out_dir)

@@ -241,7 +241,9 @@ def probe_environment(path: Path) -> None:
 
 
 def missing(step: Step, have_cuda: bool, vdb: Path | None) -> str | None:
-    """Why ``step`` cannot run here, or None."""
+    """Why ``step`` cannot run here, or None (the ``ALWAYS`` steps run whatever is missing)."""
+    if step.name in ALWAYS:
+        return None
     for need in step.needs:
         if need == "cuda" and not have_cuda:
             return "no CUDA device visible to this interpreter's torch"
@@ -321,7 +323,7 @@ def check(outdir: Path, vdb: Path | None, wheelhouse: Path | None, budget_s: flo
     have_cuda = cuda_available()
     if dry_run:
         for s in plan:
-            why = missing(s, have_cuda, vdb) if s.name not in ALWAYS else None
+            why = missing(s, have_cuda, vdb)
             print(f"{s.name} (timeout {s.timeout_s} s){'  [would be skipped: ' + why + ']' if why else ''}\n"
                   f"    {s.what}")
             for c in s.commands:
@@ -344,7 +346,7 @@ def execute(plan: list[Step], report: Report, env: dict, have_cuda: bool, vdb: P
     deadline = time.perf_counter() + budget_s
     for s in plan:
         left = deadline - time.perf_counter()
-        why = None if s.name in ALWAYS else missing(s, have_cuda, vdb)
+        why = missing(s, have_cuda, vdb)
         if why is None and left < 1:
             why = f"the overall budget ({budget_s:.0f} s) is spent"
         if why is not None:

@@ -18,7 +18,7 @@ import numpy as np
 
 
 def cache_root() -> Path | None:
-    """The cache root (created on demand), or None when ``NRC_CACHE_DIR=off``."""
+    """The cache root (its folders are made when an entry is stored), or None when ``NRC_CACHE_DIR=off``."""
     given = os.environ.get("NRC_CACHE_DIR")
     if given == "off":
         return None

@@ -57,7 +57,7 @@ from nrc.camera import Camera
 from nrc.render.radiance_caching.frame_log import LIGHT_SCALARS, FrameLog
 from nrc.render.radiance_caching.inference_filter import filtered_query
 from nrc.render.radiance_caching.paths import NRCPathTracer, PathSet
-from nrc.render.radiance_caching.settings import NRCSettings
+from nrc.render.radiance_caching.settings import NRCSettings, app_checks
 from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 from nrc.transport.rng import RandomSource
@@ -143,15 +143,8 @@ class NRCRenderer:
         self.scene = scene
         self.device = scene.device
         self.settings = st = NRCSettings.from_config(cfg.renderer)
-        self.frames = int(cfg.get("frames", 1))
-        if self.frames < 1:
-            raise ConfigError(f"frames must be >= 1, got {self.frames}")
+        self.frames = app_checks(cfg, own_cache=cache is None)
         self.display = DisplaySettings.from_config(cfg)
-        for group in ("cache", "encoding", "extra_inputs", "batch_filter"):
-            if cache is not None and group != "batch_filter":
-                continue
-            if cfg.get(group) is None:
-                raise ConfigError(f"renderer=nrc needs the config group '{group}' (see conf/config.yaml)")
         self.cache = cache if cache is not None else build_radiance_cache(
             cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed)
         self.batch_filter = make_batch_filter(cfg.batch_filter)

@@ -150,3 +150,15 @@ def _checkpoint_cadence(cfg: ConfigReader) -> dict[str, Any]:
         raise ConfigError(f"renderer.checkpoint_every must be auto or an integer >= 0, got {value!r}")
     return {"checkpoint_every": value, "checkpoint_seconds": None}
 
+
+CACHE_GROUPS = ("cache", "encoding", "extra_inputs")  # the radiance cache's config groups (nrc/cache/)
+
+
+def app_checks(cfg: Any, own_cache: bool = True) -> int:
+    """The root-level values ``renderer=nrc`` reads besides ``renderer``: ``frames`` (returned, an int >= 1) and
+    the config groups it needs (the cache's only when it builds its own cache)."""
+    frames = ConfigReader({"frames": cfg.get("frames", 1)}, "").get_int("frames", lo=1)
+    for group in (*(CACHE_GROUPS if own_cache else ()), "batch_filter"):
+        if cfg.get(group) is None:
+            raise ConfigError(f"renderer=nrc needs the config group '{group}' (see conf/config.yaml)")
+    return frames
