@@ -11,7 +11,12 @@ count, as a user waits for them):
 
 Prints the wall times, the render times from ``metrics.json`` and the ratios; ``--json`` writes them.
 
-    python scripts/bench_canonical.py [--repeats 1] [--threads 2] [--spp 512] [--json out.json]
+    python scripts/bench_canonical.py [--repeats 1] [--threads 2] [--spp 512] [--json out.json] [overrides...]
+
+Hydra overrides after the options change the scene on both sides, e.g. the thick medium of ``scene=thick``::
+
+    python scripts/bench_canonical.py --spp 64 scene.volume.density_scale=5 scene.volume.albedo=0.99 \
+        scene.volume.g=0.85 scene.integrator.max_scatter=1024
 """
 
 from __future__ import annotations
@@ -33,7 +38,8 @@ t0 = time.perf_counter()
 from nrc.config import compose
 from nrc.evaluation.mitsuba_bridge import render_mitsuba
 from nrc.scene import load_scene
-cfg = compose(["+experiment=bench_canonical", f"scene.integrator.spp={sys.argv[4]}", "scene.volume.path=" + sys.argv[3]])
+cfg = compose(["+experiment=bench_canonical", f"scene.integrator.spp={sys.argv[4]}", "scene.volume.path=" + sys.argv[3],
+               *sys.argv[6:]])
 img, secs = render_mitsuba(load_scene(cfg.scene), threads=int(sys.argv[5]), variant=sys.argv[2])
 print(f"RENDER {secs} MEAN {float(img.mean())}")
 """
@@ -55,7 +61,7 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=512)
     ap.add_argument("--skip-mitsuba", action="store_true")
     ap.add_argument("--json", type=Path)
-    args = ap.parse_args()
+    args, overrides = ap.parse_known_args()
     vdb = str(REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb")
     cache = tempfile.mkdtemp(prefix="nrc-inductor-")
     env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": cache, "OMP_NUM_THREADS": str(args.threads)}
@@ -65,7 +71,7 @@ def main() -> None:
         for _ in range(args.repeats if label != "auto_first" else 1):
             with tempfile.TemporaryDirectory() as d:
                 wall, _ = run([sys.executable, "-m", "nrc", "+experiment=bench_canonical", f"scene.integrator.spp={args.spp}",
-                               f"hydra.run.dir={d}", *extra], env)
+                               f"hydra.run.dir={d}", *overrides, *extra], env)
                 m = json.loads((Path(d) / "metrics.json").read_text())
             row = {"wall_s": wall, "render_s": m["time_render_s"], "compile_s": m.get("time_compile_s"),
                    "backend": m["backend"], "reason": m.get("backend_reason"), "image_mean": None}
@@ -83,7 +89,7 @@ def main() -> None:
             for _ in range(args.repeats):
                 try:
                     wall, stdout = run([sys.executable, "-c", MITSUBA, str(REPO / "conf"), variant, vdb, str(args.spp),
-                                        str(args.threads)], env)
+                                        str(args.threads), *overrides], env)
                 except SystemExit as exc:
                     print(f"mitsuba {variant}: failed ({str(exc).splitlines()[-1][:200]})")
                     break
@@ -100,7 +106,8 @@ def main() -> None:
                       f"render alone: {best_render[ref] / best_render[k]:.2f}x")
     print(f"samples {samples}; render samples/s: " + ", ".join(f"{k} {samples / v:,.0f}" for k, v in best_render.items()))
     if args.json:
-        args.json.write_text(json.dumps({"samples": samples, "threads": args.threads, "runs": out}, indent=2))
+        args.json.write_text(json.dumps({"samples": samples, "threads": args.threads, "overrides": overrides,
+                                         "runs": out}, indent=2))
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from nrc.evaluation.metrics import (
+    flicker,
     error_report,
     mean_relative_bias,
     medium_mask,
@@ -146,3 +147,22 @@ def test_hdr_flip_on_known_pairs():
     small = hdr_flip(ref * 1.05, ref)
     large = hdr_flip(ref * 0.5, ref)
     assert 0.0 < small < large < 1.0
+
+
+def test_flicker_on_a_hand_made_sequence():
+    ref = np.full((2, 2, 3), 2.0)
+    still = np.stack([np.full((2, 2, 3), 1.5)] * 4)
+    assert flicker(still, ref) == 0.0
+    seq = np.stack([np.full((2, 2, 3), v) for v in (1.0, 3.0, 2.0)])  # steps of 2 and 1: mean 1.5, over 2
+    assert flicker(seq, ref) == pytest.approx(0.75)
+    seq[:, 0, 0] = 100.0  # a pixel outside the mask changes nothing when masked out
+    seq[1, 0, 0] = 0.0
+    mask = np.ones((2, 2), dtype=bool)
+    mask[0, 0] = False
+    assert flicker(seq, ref, mask) == pytest.approx(0.75)
+    assert flicker(seq, ref) > 10
+    rng = np.random.default_rng(0)  # independent noise of standard deviation s: 2 s / sqrt(pi) over the mean
+    noisy = 1.0 + 0.1 * rng.standard_normal((64, 32, 32, 3))
+    assert flicker(noisy, np.ones((32, 32, 3))) == pytest.approx(0.2 / np.sqrt(np.pi), rel=0.02)
+    with pytest.raises(ValueError, match="K >= 2"):
+        flicker(seq[:1], ref)

@@ -283,6 +283,25 @@ def test_training_targets_match_a_hand_computed_path(tmp_path, target):
     assert stats["train_records_valid"] == 2 and stats["cache_queries"] == 2
 
 
+@pytest.mark.parametrize("target", ["full", "indirect"])
+def test_capped_unbiased_training_path_ends_in_the_cache_at_its_cap(tmp_path, target):
+    """``training.unbiased_max_vertices=3``: an unbiased training path (every path, here) terminates into the cache
+    at its third vertex, exactly as a self-training path with ``extra_vertices=2`` does (same records, targets)."""
+    batches = {}
+    for name, extra in (("rule", ["renderer.training.extra_vertices=2"]),
+                        ("capped", ["renderer.training.extra_vertices=0", "renderer.training.unbiased_fraction=1.0",
+                                    "renderer.training.unbiased_max_vertices=3"])):
+        cfg = compose(hand_config(tmp_path, *extra, f"renderer.cache_target={target}"))
+        cache = StubCache(lambda x, d: C.expand_as(x).clone())
+        r = NRCRenderer(load_scene(cfg.scene), cfg, cache=cache)
+        r.frame_rng = lambda frame: ConstantRandom(U)
+        _, stats, _ = r.render_frame(0)
+        assert stats["cache_queries"] == 2
+        batches[name] = cache.batches[0]
+    for a, b in zip(batches["rule"], batches["capped"]):
+        torch.testing.assert_close(a, b)
+
+
 class TwoWeightCache(StubCache):
     """Answers EMA queries with ``c_ema`` and raw-weight queries with ``c_raw``."""
 
@@ -464,6 +483,14 @@ def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
     r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     tr = r.settings.training
     assert r.medium_pixels == n_medium and abs(tr.width * tr.height / (2 * n_medium) - 1) < 0.3
+    # ring_buffer: auto keeps 4 frames of records (V = records_per_path per path), at most 2^18
+    assert r.ring.capacity == 4 * tr.width * tr.height * tr.records_per_path
+    big = NRCRenderer(scene, compose([*base, "renderer.training.width=128", "renderer.training.height=128"]),
+                      cache=StubCache(lambda x, dd: torch.zeros_like(x)))
+    assert big.ring.capacity == 1 << 18
+    fixed = NRCRenderer(scene, compose([*base, "renderer.training.ring_buffer=1000"]),
+                        cache=StubCache(lambda x, dd: torch.zeros_like(x)))
+    assert fixed.ring.capacity == 1000
     with pytest.raises(ConfigError, match="both be auto"):
         NRCRenderer(scene, compose([*base, "renderer.training.width=auto", "renderer.training.height=64"]),
                     cache=StubCache(lambda x, dd: torch.zeros_like(x)))
@@ -510,3 +537,19 @@ def test_a_resumed_run_continues_its_tensorboard_curves(tmp_path):
     events = EventAccumulator(str(tmp_path / "a" / "tensorboard"))
     events.Reload()
     assert [e.step for e in events.Scalars("loss/frame")] == [0, 1, 2, 3]
+
+
+def test_flicker_in_metrics_and_lower_when_frames_accumulate():
+    """metrics.json's ``flicker``: the mean frame-to-frame change over the pixels that see the medium (relative to
+    their mean), over the second half of the frames; averaging the frames of a static camera calms it."""
+    def run(accumulate):
+        cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "frames=6", "renderer.backend=eager",
+                       f"renderer.accumulate={str(accumulate).lower()}"])
+        scene = load_scene(cfg.scene)
+        return NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: torch.full_like(x, 0.2))).render()
+
+    each, acc = run(False), run(True)
+    h = each.metrics["history"]["flicker"]
+    assert h[0] is None and all(x > 0 for x in h[1:])
+    assert each.metrics["flicker"] == pytest.approx(np.mean(h[3:]))
+    assert acc.metrics["flicker"] < 0.6 * each.metrics["flicker"]

@@ -68,6 +68,21 @@ def test_furnace_non_absorbing_medium_under_uniform_sky_is_invisible(g):
     assert np.all(np.abs(img - L) < 0.15 * L)
 
 
+def test_capped_survival_roulette_stops_albedo_one_paths_without_bias():
+    """A survival cap below 1 (0.95: Mitsuba 3's rule) stops paths in a non-absorbing medium, where the throughput
+    roulette alone never fires, and the furnace image stays the sky (weights 1/q keep it unbiased)."""
+    base = SKY + ["scene.volume.albedo=1", "scene.volume.density_scale=0.6", "scene.volume.g=0.8",
+                  "scene.integrator.max_scatter=2000", "scene.integrator.spp=256"]
+    L = np.array([0.35, 0.5, 0.8], dtype=np.float32)
+    rr = ["renderer.russian_roulette.enabled=true", "renderer.russian_roulette.start=2"]
+    plain = make(base + rr)[0].render()  # q = max throughput = 1: never stops
+    capped = make(base + rr + ["renderer.russian_roulette.max_survival=0.95"])[0].render()
+    assert capped.metrics["tracking_steps"] < 0.9 * plain.metrics["tracking_steps"]
+    for r in (plain, capped):
+        assert np.isfinite(r.image).all()
+        np.testing.assert_allclose(r.image.reshape(-1, 3).mean(0), L, rtol=0.03)
+
+
 def test_same_seed_same_image_other_seed_other_image():
     base = ["scene.camera.width=10", "scene.camera.height=6", "scene.integrator.spp=2"]
     a = make(base)[0].render().image

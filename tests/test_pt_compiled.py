@@ -228,6 +228,14 @@ def test_auto_compiles_when_the_cache_holds_the_step(tmp_path, monkeypatch):
     assert wm.is_cached(other.core.step, other.device)  # scene numbers are not part of the structure
     no_sky, _ = make(["scene=sun_front", "scene.camera.width=4", "scene.camera.height=2"])  # another structure
     assert not wm.is_cached(no_sky.core.step, no_sky.device)
+    # CPU kernels are specialised on the thread count: a joblib worker with fewer threads has no cached step
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads + 1)
+        assert not wm.is_cached(pt.core.step, pt.device)
+    finally:
+        torch.set_num_threads(threads)
+    assert wm.is_cached(pt.core.step, pt.device)
 
 
 def test_latlong_environment_falls_back_with_a_reason(tmp_path):

@@ -26,7 +26,10 @@ Usage::
 
 ``--results`` then assembles ``docs/results.md`` from ``docs/results_intro.md`` (hand-written), the
 ``scripts/speed_vs_error.py`` outputs listed in :data:`SPEED_RUNS` (``docs/results/speed_*``), and the report
-fragments.
+fragments, and rewrites the measured numbers under the README's figures (the lines between
+``<!-- generated: scripts/experiments_report.py --results: <figure> -->`` and ``<!-- end generated -->``) from the
+same summaries and the figures' ``docs/images/nrc_vs_pt.json`` and ``docs/images/figures.json``. A report whose
+experiments have no runs under ``--root`` keeps its committed Markdown.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -335,6 +339,9 @@ BUILDERS = {
 }
 
 
+# the front-lit runs' renderer (commits ed8b100-e0a394f): before the shared transport core (nrc/render/wavefront/)
+# and the current NRC defaults (docs/nrc.md, "Defaults by measurement")
+EARLIER = "earlier version of the renderer, before the shared transport core"
 # (label, run directory under docs/results/): first the comparison with the path tracer plus a denoiser on the
 # scene types (the headline), then the earlier runs against the raw path tracer on the front-lit preset
 SPEED_RUNS = [("side-lit Disney cloud (sun + sky, g 0.5), 480 x 270", "oidn_480x270_side_lit"),
@@ -364,14 +371,16 @@ SPEED_RUNS = [("side-lit Disney cloud (sun + sky, g 0.5), 480 x 270", "oidn_480x
                "160 x 90, eager", "light_sampling_160x90_cumulus"),
               ("the path tracer and NRC with uniform and RIS light selection, raw and denoised: the many-lights preset, "
                "160 x 90, eager", "light_sampling_160x90_many_lights_nrc"),
-              ("front-lit preset (sun_front), raw path tracer, 480 x 270 (older code)", "speed_480x270_v2"),
-              ("front-lit preset (sun_front), raw path tracer, 160 x 90 (older code)", "speed_160x90_v2"),
+              ("front-lit preset (sun_front), raw path tracer, 480 x 270 (" + EARLIER + ", commit ed8b100)",
+               "speed_480x270_v2"),
+              ("front-lit preset (sun_front), raw path tracer, 160 x 90 (" + EARLIER + ", commit ed8b100)",
+               "speed_160x90_v2"),
               ("front-lit preset, 160 x 90, the default sweep (encodings, extra inputs, transmittance estimators; "
-               "older code)", "speed_160x90_sweep_v2"),
-              ("front-lit preset, 160 x 90, accumulated frames with a static camera (2 threads; older code)",
-               "speed_160x90_accumulate_crossover"),
-              ("front-lit preset, 80 x 45, accumulated frames with a static camera (older code)",
-               "speed_80x45_accumulate_crossover")]
+               + EARLIER + ", commit ed8b100)", "speed_160x90_sweep_v2"),
+              ("front-lit preset, 160 x 90, accumulated frames with a static camera (2 threads; " + EARLIER
+               + ", commit e0a394f)", "speed_160x90_accumulate_crossover"),
+              ("front-lit preset, 80 x 45, accumulated frames with a static camera (" + EARLIER
+               + ", commits ed8b100 and e0a394f)", "speed_80x45_accumulate_crossover")]
 HEADLINE = "nrc"  # the NRC configuration of the headline runs (its denoised twin is nrc+oidn)
 HEADLINE_RUNS = ("oidn_480x270_side_lit", "oidn_160x90_side_lit")  # the first one present is the headline
 
@@ -385,6 +394,26 @@ def _ratio(summary: dict, config: str, baseline: str) -> dict | None:
 
 def _row(summary: dict, config: str) -> dict | None:
     return next((r for r in summary.get("rows", []) if r["config"] == config and r["mode"] == "single"), None)
+
+
+def _warmup(summary: dict) -> str:
+    """NRC's warm-up frames of a ``speed_vs_error`` run (its ``--warmup``), ``?`` when not recorded."""
+    argv = (summary.get("meta") or {}).get("argv") or []
+    return argv[argv.index("--warmup") + 1] if "--warmup" in argv[:-1] else "?"
+
+
+def scene_type_ratios(summaries: dict[str, tuple[str, dict]]) -> list[dict[str, Any]]:
+    """NRC + OIDN against the path tracer + OIDN at equal time per frame, one entry per run against the path
+    tracer plus a denoiser (``oidn_*``) that has the ratio: the numbers of the headline and of the README's
+    figure caption."""
+    out = []
+    for name, (label, summ) in summaries.items():
+        den, row = _ratio(summ, HEADLINE + "+oidn", "pt+oidn"), _row(summ, HEADLINE + "+oidn")
+        if not name.startswith("oidn_") or den is None or row is None:
+            continue
+        out.append({"name": name, "label": label, "ratio": den["ratio_rel_mse_medium"], "time_s": den["time_s"],
+                    "mean": row.get("mean_ratio_medium"), "spp": row.get("spp"), "warmup": _warmup(summ)})
+    return out
 
 
 def scene_type_table(summaries: dict[str, tuple[str, dict]]) -> list[str]:
@@ -402,10 +431,8 @@ def scene_type_table(summaries: dict[str, tuple[str, dict]]) -> list[str]:
         row = _row(summ, HEADLINE + "+oidn")
         pts = [r for r in summ["rows"] if r["mode"] == "single" and r.get("denoised") and r["renderer"] == "pt"]
         near = min(pts, key=lambda r: abs(r["time_s"] - den["time_s"])) if pts else {}
-        warm = summ["meta"].get("argv", [])
-        warmup = warm[warm.index("--warmup") + 1] if "--warmup" in warm else "?"
         lines.append(
-            f"| {label}, {warmup} warm-up frames | {fmt(raw and raw['ratio_rel_mse_medium'], 2)} | "
+            f"| {label}, {_warmup(summ)} warm-up frames | {fmt(raw and raw['ratio_rel_mse_medium'], 2)} | "
             f"**{den['ratio_rel_mse_medium']:.2g}** | {fmt(cross and cross['ratio_rel_mse_medium'], 2)} | "
             f"{fmt(row.get('mean_ratio_medium'), 3)} | {fmt(near.get('mean_ratio_medium'), 3)} | "
             f"{fmt(row.get('flip'), 3)} / {fmt(near.get('flip'), 3)} | "
@@ -436,11 +463,8 @@ def headline(summaries: dict[str, tuple[str, dict]]) -> list[str]:
         text += f" (the path tracer + OIDN's nearest-in-time frame: {fmt(row_pt.get('mean_ratio_medium'), 3)})"
     if raw is not None:
         text += f"; raw NRC against the raw path tracer: {raw['ratio_rel_mse_medium']:.2g}"
-    others = []
-    for n, (lab, sm) in summaries.items():
-        q, r = _ratio(sm, HEADLINE + "+oidn", "pt+oidn"), _row(sm, HEADLINE + "+oidn")
-        if n != name and n.startswith("oidn_") and q is not None and r is not None:
-            others.append(f"{lab}: {q['ratio_rel_mse_medium']:.2g} (mean {fmt(r.get('mean_ratio_medium'), 3)})")
+    others = [f"{q['label']}: {q['ratio']:.2g} (mean {fmt(q['mean'], 3)})" for q in scene_type_ratios(summaries)
+              if q["name"] != name]
     if others:
         text += ". The same ratio on the other runs: " + "; ".join(others)
     return [text + ". A ratio above 1 means the path tracer plus a denoiser is better at equal time.", ""]
@@ -458,6 +482,222 @@ def _speed_section(docs: Path, label: str, name: str) -> tuple[list[str], dict |
              f"Files: [`CSV`](results/{name}/speed_vs_error.csv), [`summary.json`](results/{name}/summary.json).", "",
              (d / "speed_vs_error.md").read_text(), "", f"![speed vs error {label}](results/{name}/speed_vs_error.png)", ""]
     return lines, summary
+
+
+# ---------------------------------------------------------------------------- the README's figure captions
+# The README keeps its hand-written captions; the measured numbers under each figure sit between these markers and
+# are rewritten by --results from the same files as docs/results.md (docs/results/*/summary.json and the
+# figures' docs/images/nrc_vs_pt.json, docs/images/figures.json, written by scripts/make_figures.py).
+README_BEGIN = "<!-- generated: scripts/experiments_report.py --results: {} -->"
+README_END = "<!-- end generated -->"
+README_WIDTH = 115
+HERO_NAMES = {"disney": "the Disney cloud"}
+
+
+class ReadmeError(ValueError):
+    """A generated block's markers are missing, repeated or unknown in the README (a one-line message)."""
+
+
+def _read_json(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def speed_summaries(docs: Path) -> dict[str, tuple[str, dict]]:
+    """``{run: (label, summary)}`` of every run of :data:`SPEED_RUNS` whose ``summary.json`` exists."""
+    out = {}
+    for label, name in SPEED_RUNS:
+        summary = _read_json(docs / "results" / name / "summary.json")
+        if summary is not None:
+            out[name] = (label, summary)
+    return out
+
+
+def _machine(figures: dict, part: str) -> str | None:
+    """The machine of a part of ``figures.json`` (``None`` when the last run skipped that part: another run's)."""
+    return figures.get("machine") if figures.get("machine") and part not in figures.get("skipped", []) else None
+
+
+def _span(items: list[dict], key: str, digits: int = 2, unit: str = "") -> str:
+    """``lo (label) to hi (label)`` of ``items[key]`` (one value: ``v (label)``)."""
+    def label(q: dict) -> str:  # one level of parentheses: "a (b, c), d" -> "a, b, c, d"
+        return q["label"].replace(" (", ", ").replace(")", "")
+
+    lo, hi = min(items, key=lambda q: q[key]), max(items, key=lambda q: q[key])
+    one = f"{lo[key]:.{digits}g}{unit} ({label(lo)})"
+    return one if lo is hi or f"{lo[key]:.{digits}g}" == f"{hi[key]:.{digits}g}" else \
+        f"{one} to {hi[key]:.{digits}g}{unit} ({label(hi)})"
+
+
+def _range(values: list[float], digits: int = 3) -> str:
+    lo, hi = f"{min(values):.{digits}g}", f"{max(values):.{digits}g}"
+    return lo if lo == hi else f"{lo}–{hi}"
+
+
+def sweep_summary(summaries: dict[str, tuple[str, dict]]) -> str | None:
+    """The equal-time comparison of NRC + OIDN with the path tracer + OIDN over the scene types, in one sentence
+    (the numbers of :func:`headline`)."""
+    recs = scene_type_ratios(summaries)
+    if not recs:
+        return None
+
+    def order(w: str) -> int:
+        return int(w) if w.isdigit() else 1 << 30
+
+    warmups = sorted({q["warmup"] for q in recs}, key=order)
+    cold, warm = [q for q in recs if q["warmup"] == warmups[0]], [q for q in recs if q["warmup"] != warmups[0]]
+    nrc_spp = sorted({q["spp"] for q in recs if q.get("spp") is not None})
+    pt_spp = sorted({r["spp"] for q in recs for r in summaries[q["name"]][1].get("rows", [])
+                     if r["mode"] == "single" and r.get("denoised") and r["renderer"] == "pt" and r.get("spp")})
+    text = ("In the runs of [`docs/results.md`](docs/results.md) (single frames at equal time per frame, the "
+            "denoiser's time included" + (f"; NRC scored at {_range(nrc_spp, 6)} spp a frame" if nrc_spp else "")
+            + (f", the path tracer's best error in that time from its {_range(pt_spp, 6)}-spp renders"
+               if pt_spp else "")
+            + f"; relMSE over the cloud's pixels), NRC + OIDN's relMSE is {_span(cold, 'ratio', unit='x')} the path "
+            f"tracer + OIDN's after {warmups[0]} warm-up frames from an untrained cache")
+    if warm:
+        ws = sorted({q["warmup"] for q in warm}, key=order)
+        text += f", and {_span(warm, 'ratio', unit='x')} after {_range([order(w) for w in ws])} warm-up frames"
+    means = [q["mean"] for q in recs if q.get("mean") is not None]
+    if means:
+        text += f"; NRC + OIDN's image mean over the cloud's pixels is {_range(means)} of the reference's"
+    ahead = sum(q["ratio"] < 1 for q in recs)
+    text += (". The path tracer plus a denoiser is ahead on every run" if ahead == 0 else
+             ". NRC + OIDN is ahead on every run" if ahead == len(recs) else
+             f". NRC + OIDN is ahead on {ahead} of {len(recs)} runs")
+    return text + "."
+
+
+def readme_clouds(figures: dict) -> list[str]:
+    heroes = figures.get("heroes") or {}
+    if not heroes:
+        return ["(not measured: `docs/images/figures.json` has no heroes; `python scripts/make_figures.py` writes "
+                "them)"]
+    items = [{"label": HERO_NAMES.get(n, n), **h} for n, h in heroes.items()]
+    spp = _range([h["spp"] for h in items], 6)
+    text = f"Each image is a {spp}-spp path trace, not converged"
+    floors = [h for h in items if h.get("rel_mse_floor") is not None and h["rel_mse_floor"] >= 0]
+    if floors:
+        text += (f": its own noise adds relMSE {_span(floors, 'rel_mse_floor')} to any comparison with it (the "
+                 "mean over all pixels of its variance over (r² + 0.01), from the render's chunks)")
+    machine = _machine(figures, "heroes")
+    if machine:
+        text += f"; rendered in {_range([h['time_s'] for h in items], 3)} s each ({machine})"
+    return [text + ". Numbers: [`docs/images/figures.json`](docs/images/figures.json)."]
+
+
+def readme_comparison(cmp: dict | None, figures: dict, summaries: dict[str, tuple[str, dict]]) -> list[str]:
+    out = []
+    if cmp:
+        pt, nrc, ptd, nrcd = cmp["pt"], cmp["nrc"], cmp.get("pt_oidn"), cmp.get("nrc_oidn")
+        machine = _machine(figures, "comparison") if figures.get("comparison") == cmp else None
+        floor = cmp.get("reference_rel_mse_floor_medium")
+        text = (f"Measured: {cmp['scene']}, {cmp['width']} x {cmp['height']}, one run"
+                + (f" ({machine})" if machine else "") + f". NRC renders {nrc['frames']} frames at "
+                f"{nrc['spp_per_frame']} spp from an untrained cache and shows the last; its median frame over the "
+                f"second half takes {nrc['time_per_frame_s']:.2f} s. The path tracer gets the most spp whose render "
+                f"fits in that time: {pt['spp']} spp in {pt['time_s']:.2f} s. relMSE over the cloud's pixels (the "
+                f"mean of (x − r)² / (r² + 0.01) against a {cmp['reference_spp']}-spp reference"
+                + (f", whose own noise adds {fmt(floor, 2)}" if floor is not None and floor >= 0 else "")
+                + f"): the path tracer {fmt(pt['rel_mse_medium'], 2)} raw, NRC {fmt(nrc['rel_mse_medium'], 2)} raw")
+        if ptd and nrcd:
+            seeds = list((ptd.get("rel_mse_medium_per_seed") or {}).values())
+            ratio = nrcd["rel_mse_medium"] / ptd["rel_mse_medium"]
+            text += (f"; denoised by OIDN (not counted in the times: {ptd['time_denoise_s'] * 1e3:.0f} ms a path-traced "
+                     f"frame, {nrcd['time_denoise_s'] * 1e3:.0f} ms NRC's) the path tracer "
+                     f"**{fmt(ptd['rel_mse_medium'], 2)}**"
+                     + (f" (the median of {len(seeds)} seeds, {_range(seeds, 2)})" if len(seeds) > 1 else "")
+                     + f" and NRC **{fmt(nrcd['rel_mse_medium'], 2)}**, {ratio:.2g}x the path tracer's. Image mean "
+                     f"over the cloud's pixels, as a fraction of the reference's: NRC + OIDN "
+                     f"{nrcd['mean_over_reference_medium']:.3f}, the path tracer + OIDN "
+                     f"{ptd['mean_over_reference_medium']:.3f}")
+        else:
+            text += (f". Image mean over the cloud's pixels, as a fraction of the reference's: NRC "
+                     f"{nrc['mean_over_reference_medium']:.3f}, the path tracer {pt['mean_over_reference_medium']:.3f}")
+        out.append(text + ". Numbers: [`docs/images/nrc_vs_pt.json`](docs/images/nrc_vs_pt.json).")
+    else:
+        out.append("(not measured: `docs/images/nrc_vs_pt.json` is missing; `python scripts/make_figures.py` writes it)")
+    sweep = sweep_summary(summaries)
+    twin = next((q for q in scene_type_ratios(summaries)
+                 if cmp and q["name"] == f"oidn_{cmp['width']}x{cmp['height']}_{cmp.get('comparison')}"), None)
+    if sweep and twin is not None:  # the figure's scene and size, measured there: why its ratio differs
+        sweep += (f" On the figure's scene and size they measure {twin['ratio']:.2g}x (image mean "
+                  f"{fmt(twin['mean'], 3)}); the figure is a single run at {cmp['nrc']['spp_per_frame']} spp per "
+                  "NRC frame.")
+    if sweep:
+        out.append(sweep)
+    return out
+
+
+def readme_animation(figures: dict) -> list[str]:
+    a = figures.get("animation")
+    if not a:
+        return ["(not measured: `docs/images/figures.json` has no animation; `python scripts/make_figures.py` "
+                "writes it)"]
+    machine = _machine(figures, "animation")
+    return [f"{a['frames']} frames, the sun {a['degrees_per_frame']:g} degrees further each frame, recorded after NRC "
+            f"has trained for {a['warmup_frames']} frames with the sun already turning. The path tracer renders "
+            f"{a['pt_spp']} spp afresh every frame in {a['pt_time_per_frame_s']:.2f} s; an NRC frame, training "
+            f"included, takes {a['nrc_time_per_frame_s']:.2f} s (medians over the recorded frames"
+            + (f"; {machine}" if machine else "") + "). Numbers: "
+            "[`docs/images/figures.json`](docs/images/figures.json)."]
+
+
+def readme_blocks(docs: Path) -> dict[str, list[str]]:
+    """The README's generated caption paragraphs, per block name, from the result files under ``docs``."""
+    figures = _read_json(docs / "images" / "figures.json") or {}
+    cmp = _read_json(docs / "images" / "nrc_vs_pt.json") or figures.get("comparison")
+    return {"clouds": readme_clouds(figures),
+            "nrc_vs_pt": readme_comparison(cmp, figures, speed_summaries(docs)),
+            "sun": readme_animation(figures)}
+
+
+_NO_LINE_START = re.compile(r"[-+*>#|=]|\d+[.)]$")  # a line starting so would become a list, heading, ...
+
+
+def _wrap(text: str, width: int = README_WIDTH) -> list[str]:
+    """Greedy wrap that never starts a line with a word Markdown would read as a list item, heading or quote."""
+    lines: list[str] = []
+    for word in text.split():
+        if lines and (len(lines[-1]) + 1 + len(word) <= width or _NO_LINE_START.match(word)):
+            lines[-1] += " " + word
+        else:
+            lines.append(word)
+    return lines
+
+
+def block_markdown(paragraphs: list[str]) -> list[str]:
+    """Italic caption paragraphs, wrapped, a blank line between them."""
+    out: list[str] = []
+    for par in paragraphs:
+        out += ([""] if out else []) + _wrap(f"*{par.strip()}*")
+    return out
+
+
+def rewrite_readme(text: str, blocks: dict[str, list[str]], where: str = "README.md") -> str:
+    """``text`` with the lines between each block's markers replaced by the block (markers and every other line
+    kept); :class:`ReadmeError` (one line) when a marker is missing, repeated, unknown or unclosed."""
+    lines = text.split("\n")
+    prefix = README_BEGIN.split("{}")[0]
+    for i, line in enumerate(lines):
+        if line.strip().startswith(prefix) and line.strip() not in {README_BEGIN.format(n) for n in blocks}:
+            raise ReadmeError(f"{where}:{i + 1}: unknown generated block `{line.strip()}`; known: "
+                              + ", ".join(f"`{README_BEGIN.format(n)}`" for n in blocks))
+    for name, block in blocks.items():
+        begin = README_BEGIN.format(name)
+        starts = [i for i, line in enumerate(lines) if line.strip() == begin]
+        if not starts:
+            raise ReadmeError(f"{where}: no line `{begin}` (the {name} figure's measured numbers go between it and "
+                              f"`{README_END}`)")
+        if len(starts) > 1:
+            raise ReadmeError(f"{where}: `{begin}` appears {len(starts)} times (lines "
+                              f"{', '.join(str(i + 1) for i in starts)})")
+        i = starts[0]
+        end = next((j for j in range(i + 1, len(lines)) if lines[j].strip() in (README_END,)
+                    or lines[j].strip().startswith(prefix)), None)
+        if end is None or lines[end].strip() != README_END:
+            raise ReadmeError(f"{where}:{i + 1}: `{begin}` has no `{README_END}` after it")
+        lines[i + 1:end] = ["", *block_markdown(block), ""]
+    return "\n".join(lines)
 
 
 def assemble_results(docs: Path, intro: Path | None) -> Path:
@@ -494,24 +734,46 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("reports", nargs="*", default=list(REPORTS), help=f"any of {', '.join(REPORTS)}")
     p.add_argument("--root", type=Path, default=REPO / "multirun" / "experiments")
     p.add_argument("--docs", type=Path, default=REPO / "docs")
-    p.add_argument("--results", action="store_true", help="also assemble docs/results.md")
+    p.add_argument("--results", action="store_true",
+                   help="also assemble docs/results.md and rewrite the README's generated figure captions")
+    p.add_argument("--readme", type=Path, default=None,
+                   help="the README whose generated blocks --results rewrites (default: README.md beside --docs)")
     p.add_argument("--intro", type=Path, default=REPO / "docs" / "results_intro.md",
                    help="hand-written Markdown placed at the top of results.md (if it exists)")
     p.add_argument("--conditions", default=CONDITIONS["text"],
                    help="how the multiruns were run (threads, other jobs), stated with each report")
     args = p.parse_args(argv)
     CONDITIONS["text"] = args.conditions
+    for name in args.reports:
+        if name not in BUILDERS:
+            raise SystemExit(f"experiments_report: unknown report {name!r}; known: {', '.join(REPORTS)}")
+    readme = args.readme or args.docs.resolve().parent / "README.md"
+    readme_text = new_readme = None
+    if args.results and readme.is_file():  # checked before anything is written
+        readme_text = readme.read_text()
+        try:
+            new_readme = rewrite_readme(readme_text, readme_blocks(args.docs), readme.name)
+        except ReadmeError as e:
+            raise SystemExit(f"experiments_report: {e}") from None
     out_md, out_img = args.docs / "results", args.docs / "images" / "results"
     out_md.mkdir(parents=True, exist_ok=True)
     out_img.mkdir(parents=True, exist_ok=True)
     for name in args.reports:
-        if name not in BUILDERS:
-            raise SystemExit(f"experiments_report: unknown report {name!r}; known: {', '.join(REPORTS)}")
-        text = "\n".join(BUILDERS[name](args.root, out_img))
-        (out_md / f"{name}.md").write_text(text)
-        print(f"wrote {out_md / (name + '.md')}")
+        target = out_md / f"{name}.md"
+        if target.is_file() and not any((args.root / e).is_dir() for e in REPORTS[name]):
+            print(f"kept {target}: no runs of {', '.join(REPORTS[name])} under {args.root}")
+            continue
+        target.write_text("\n".join(BUILDERS[name](args.root, out_img)))
+        print(f"wrote {target}")
     if args.results:
         print(f"wrote {assemble_results(args.docs, args.intro)}")
+        if new_readme is None:
+            print(f"experiments_report: no {readme}; no README captions rewritten")
+        elif new_readme != readme_text:
+            readme.write_text(new_readme)
+            print(f"wrote {readme} (its generated figure captions)")
+        else:
+            print(f"{readme}: generated figure captions unchanged")
     return 0
 
 

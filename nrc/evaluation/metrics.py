@@ -134,6 +134,19 @@ def mean_ratio(x: ArrayLike, ref: ArrayLike, mask: ArrayLike | None = None) -> f
     return float(_select(x, mask).mean() / _select(ref, mask).mean())
 
 
+def flicker(frames: ArrayLike, ref: ArrayLike, mask: ArrayLike | None = None) -> float:
+    """Temporal instability of a frame sequence ``(T, H, W, 3)`` (T >= 2) of a static camera: the mean over
+    ``t = 1..T-1`` of the mean ``|I_t - I_{t-1}|`` over the selected pixels and channels, divided by the
+    reference's mean over the same pixels. 0 for a still image; a renderer with independent Gaussian noise of
+    standard deviation ``s`` per frame scores ``2 s / sqrt(pi)`` (about ``1.13 s``) over the reference's mean."""
+    xs, ref = _renders(frames, ref, min_renders=2)
+    scale = float(_select(ref, mask).mean())
+    if not scale > 0:
+        raise ValueError("flicker: the reference is black over the selected pixels")
+    diffs = [float(_select(np.abs(xs[t] - xs[t - 1]), mask).mean()) for t in range(1, len(xs))]
+    return float(np.mean(diffs)) / scale
+
+
 def hdr_flip(x: ArrayLike, ref: ArrayLike) -> float:
     """Mean HDR-FLIP error (Andersson et al. 2021) of ``x`` against ``ref`` through NVIDIA's ``flip-evaluator``
     package (its defaults: 67 pixels per degree, ACES tone mapping, exposures chosen from the reference).

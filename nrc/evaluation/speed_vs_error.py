@@ -57,7 +57,7 @@ import torch
 REPO = Path(__file__).resolve().parents[2]  # the checkout (data/references, outputs/ and git live there)
 
 from nrc.config import CONF_DIR, code_version, compose, resolve_device  # noqa: E402
-from nrc.evaluation.metrics import (hdr_flip, mean_ratio, mean_relative_bias, medium_mask, mse,  # noqa: E402
+from nrc.evaluation.metrics import (flicker, hdr_flip, mean_ratio, mean_relative_bias, medium_mask, mse,  # noqa: E402
                                    normalised_rel_mse, rel_mse, relative_variance)
 from nrc.evaluation.reference import (REF_SEED, check_independent, default_reference_path, read_reference,  # noqa: E402
                                      render_reference)
@@ -86,6 +86,11 @@ PRESETS: dict[str, list[str]] = {
         "scene.lights.0.intensity=[3000,2900,2800]", "scene.camera.width=160", "scene.camera.height=90",
     ],
     "cumulus": ["scene=sun", "scene.camera.width=160", "scene.camera.height=90"],  # the default scene
+    # thick, bright clouds (conf/scene/thick*.yaml: albedo 0.99, g 0.85, sun + sky; median optical depth ~100 / ~200)
+    "thick": ["scene=thick", f"scene.volume.path={SHARED_VDB}", "scene.camera.width=160", "scene.camera.height=90"],
+    "thick10": ["scene=thick", f"scene.volume.path={SHARED_VDB}", "scene.volume.density_scale=10",
+                "scene.camera.width=160", "scene.camera.height=90"],
+    "thick_cumulus": ["scene=thick_cumulus", "scene.camera.width=160", "scene.camera.height=90"],
     # the light-sampling scenes of docs/path_tracer.md (the procedural cumulus)
     "many_lights": ["scene=many_lights", "scene.camera.width=160", "scene.camera.height=90"],
     "sun_sky": ["scene=sun_sky", "scene.camera.width=160", "scene.camera.height=90"],
@@ -115,7 +120,7 @@ SEED_BASE = 1000  # seeds of the scored renders; references use seeds >= 1e6 (nr
 FIELDS = [
     "mode", "config", "renderer", "spp", "frames", "time_s", "cpu_s", "rel_mse", "rel_mse_medium", "rel_mse_corr",
     "rel_mse_medium_corr", "bias", "bias_medium", "mean_ratio", "mean_ratio_medium", "rel_mse_norm",
-    "rel_mse_norm_medium", "flip", "denoised", "clamp_bias",
+    "rel_mse_norm_medium", "flip", "flicker_medium", "denoised", "clamp_bias",
     "variance", "variance_medium", "mse", "mse_medium", "renders", "rel_mse_floor", "rel_mse_floor_medium",
 ]
 
@@ -162,6 +167,8 @@ class Scorer:
             row["rel_mse_norm" + suffix] = float(np.mean([normalised_rel_mse(x, self.ref, m, mask) for x in xs]))
             row["variance" + suffix] = relative_variance(xs, self.ref, m) if len(xs) >= 2 else None
         row["flip"] = _flip(xs, self.ref)
+        # consecutive renders of the static camera: NRC's scored frames in order, pt's independent repeats
+        row["flicker_medium"] = flicker(xs, self.ref, mask) if len(xs) >= 2 else None
         row["rel_mse_floor"] = self.floor
         row["rel_mse_floor_medium"] = self.floor_medium
         return row
@@ -569,7 +576,9 @@ def markdown(rows, ratios, cross, meta) -> str:
              f"NRC settings added to every NRC config: `{' '.join(meta['nrc_overrides'])}`. Code: {meta['git']}.", "",
              f"Sanity baseline: an all-black image scores relMSE {fmt(meta['black']['rel_mse_medium'])} over the "
              f"medium pixels ({fmt(meta['black']['rel_mse'])} over all): a renderer below that is not necessarily "
-             "right, and one above it is noisier than giving up.", ""]
+             "right, and one above it is noisier than giving up. Flicker: the mean |I_t - I_t-1| over the medium "
+             "pixels over the reference's mean there, for consecutive frames of the static camera (NRC's scored "
+             "frames in order; pt's independent renders).", ""]
     for mode, title in (("single", "Single frames (time = wall time per frame)"),
                         ("accumulate", "Accumulated frames, static camera (time = cumulative wall time)")):
         sel = [r for r in rows if r["mode"] == mode]
@@ -578,13 +587,14 @@ def markdown(rows, ratios, cross, meta) -> str:
         lines += [f"**{title}**", "",
                   "| config | spp/frame | frames | time (s) | CPU time (s) | relMSE medium | relMSE all | "
                   "relMSE medium, normalised | mean / reference, medium | rel. bias medium | rel. variance medium "
-                  "| HDR-FLIP | renders |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| HDR-FLIP | flicker medium | renders |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in sel:
             lines.append(f"| {r['config']} | {r['spp']} | {r['frames']} | {r['time_s']:.3g} | {fmt(r.get('cpu_s'))} | "
                          f"{fmt(r.get('rel_mse_medium'))} | {fmt(r['rel_mse'])} | {fmt(r.get('rel_mse_norm_medium'))} | "
                          f"{fmt(r.get('mean_ratio_medium'))} | {fmt(r.get('bias_medium'))} | "
-                         f"{fmt(r.get('variance_medium'))} | {fmt(r.get('flip'))} | {r['renders']} |")
+                         f"{fmt(r.get('variance_medium'))} | {fmt(r.get('flip'))} | {fmt(r.get('flicker_medium'))} | "
+                         f"{r['renders']} |")
         lines.append("")
     if ratios:
         pts = ", ".join(f"`{n}`" for n in baseline_names(meta["baseline"]))

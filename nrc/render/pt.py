@@ -47,6 +47,7 @@ from nrc.render.result import RenderResult
 from nrc.render.wavefront import BACKENDS, build_core, camera_paths
 from nrc.render.wavefront.driver import Wavefront
 from nrc.render.wavefront.machine import compiled_graphs
+from nrc.render.wavefront.step import RussianRoulette
 from nrc.render.wavefront.reuse import ReuseSettings, VertexRecord, make_reuse
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSamplingSettings
@@ -75,6 +76,9 @@ class PathTracerSettings:
     """Throughput roulette on."""
     rr_start: int
     """First scattering event at which the roulette may stop a path."""
+    rr_max_survival: float
+    """Survival probability cap of the roulette (``q = min(clamp(max throughput, 0.05, 1), max_survival)``;
+    Mitsuba 3: 0.95); below 1 it stops albedo-1 paths too (:class:`nrc.render.wavefront.step.RussianRoulette`)."""
     backend: str
     """``auto`` | ``eager`` | ``compiled`` (:mod:`nrc.render.wavefront.setup`)."""
     compile_min_samples: int
@@ -90,6 +94,11 @@ class PathTracerSettings:
     ``distance_steps``: reservoir
     reuse at the first vertex or along the camera ray (nrc.render.wavefront.reuse)."""
 
+    @property
+    def roulette(self) -> RussianRoulette | None:
+        """The throughput roulette the core runs (``None``: off)."""
+        return RussianRoulette(self.rr_start, self.rr_max_survival) if self.russian_roulette else None
+
     @classmethod
     def from_config(cls, renderer: Any) -> PathTracerSettings:
         cfg = ConfigReader(renderer, "renderer")
@@ -102,6 +111,7 @@ class PathTracerSettings:
             free_flight=cfg.get_choice("free_flight", ["brick", "global"]),
             russian_roulette=rr.get_bool("enabled"),
             rr_start=rr.get_int("start", lo=1),
+            rr_max_survival=rr.get_float("max_survival", lo=0.05, hi=1.0),
             backend=cfg.get_choice("backend", list(BACKENDS)),
             compile_min_samples=cfg.get_int("compile_min_samples", lo=0),
             steps_per_call=cfg.get_int("steps_per_call", lo=1),
@@ -135,7 +145,7 @@ class PathTracer:
         self.max_scatter = scene.integrator.max_scatter
         self.core = build_core(scene.grid, self.lights, scene.albedo, scene.g, self.max_scatter, self.transmittance,
                                st.brick, st.free_flight, st.backend, st.steps_per_call, st.compile_min_samples,
-                               st.rr_start if st.russian_roulette else None,
+                               st.roulette,
                                point_lights=st.light_sampling.equiangular_points(scene),
                                reuse_vertex=st.reuse.vertex(scene.g), reuse_light_only=st.reuse.light_only)
         self.majorants = self.core.majorants

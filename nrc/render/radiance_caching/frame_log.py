@@ -2,7 +2,8 @@
 
 TensorBoard tags: ``loss/step`` (every training step), ``loss/frame`` (mean per frame), ``time/<stage>``
 for ``trace`` (with its parts ``free_flight`` and ``shadow``), ``infer``, ``train`` and ``frame``
-(seconds), ``error/rel_mse`` and ``error/mse`` when a reference is given, and ``debias/<counter>`` with ``renderer.debias`` (``debias.py``), ``reuse/<counter>`` with ``renderer.reuse``,
+(seconds), ``error/rel_mse`` and ``error/mse`` when a reference is given, ``error/flicker`` (the mean frame-to-frame change
+over the pixels that see the medium, relative to their mean), and ``debias/<counter>`` with ``renderer.debias`` (``debias.py``), ``reuse/<counter>`` with ``renderer.reuse``,
 ``light/<counter>`` (the light sampling), ``image/frame`` /
 ``image/output`` (tone-mapped) every ``image_every`` frames, each with one exposure for the whole run (with
 ``exposure: auto``, the exposure of its first logged image) so the images show the convergence.
@@ -55,6 +56,8 @@ class FrameLog:
                 self.writer.add_scalar(f"time/{key[5:-2]}", value, frame)
             elif key in ("loss", "rel_mse", "mse") and value is not None:
                 self.writer.add_scalar("loss/frame" if key == "loss" else f"error/{key}", value, frame)
+            elif key == "flicker" and value is not None:  # mean |I_t - I_t-1| over the medium (renderer._flicker)
+                self.writer.add_scalar("error/flicker", value, frame)
             elif key in LIGHT_SCALARS and value is not None:
                 self.writer.add_scalar(f"light/{key}", value, frame)
             elif key.startswith("reuse_") and value is not None:  # reservoir reuse counters (wavefront/reuse.py)

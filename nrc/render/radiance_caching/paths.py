@@ -64,7 +64,7 @@ from nrc.render.radiance_caching.termination import Termination
 from nrc.render.wavefront import build_core, camera_paths
 from nrc.render.wavefront.driver import Harvest, Wavefront
 from nrc.render.wavefront.reuse import VertexRecord
-from nrc.render.wavefront.step import NRCRule
+from nrc.render.wavefront.step import NRCRule, RussianRoulette
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler, LightSamplingSettings
 from nrc.transport.rng import path_key
@@ -143,6 +143,10 @@ class NRCPathTracer:
         slots: paths in flight; shadow_batch: next-event rays traced per estimator call.
         brick, free_flight: the majorants (``renderer.brick``, ``renderer.free_flight``).
         backend, steps_per_call, compile_min_samples: execution (:mod:`nrc.render.wavefront.setup`).
+        roulette: the throughput roulette (``renderer.russian_roulette``; it only reaches the paths that go on
+            past ``start`` vertices: unbiased training paths and ``renderer.debias`` suffixes).
+        unbiased_max_vertices: an unbiased training path terminates into the cache at this vertex after all (0:
+            never; it runs to ``max_scatter``).
     """
 
     def __init__(self, scene: Scene, transmittance: object, termination: Termination, records_per_path: int,
@@ -150,13 +154,15 @@ class NRCPathTracer:
                  free_flight: str = "brick", backend: str = "eager", steps_per_call: int = 1,
                  compile_min_samples: int = 0, cache_target: str = "full",
                  light_sampling: LightSamplingSettings = LightSamplingSettings(), reuse_vertex: int = 0,
-                 debias: bool = False, reuse_light_only: bool = False) -> None:
+                 debias: bool = False, reuse_light_only: bool = False, roulette: RussianRoulette | None = None,
+                 unbiased_max_vertices: int = 0) -> None:
         self.scene = scene
         self.device = scene.device
         self.transmittance = transmittance
         self.termination = termination
         self.V = records_per_path
         self.extra_vertices = extra_vertices
+        self.unbiased_max_vertices = unbiased_max_vertices  # unbiased training paths end in the cache there (0: never)
         self.slots = slots
         self.shadow_batch = shadow_batch
         self.cache_target = cache_target
@@ -165,7 +171,7 @@ class NRCPathTracer:
         # reuse.domain=distance: that vertex's direct light is all the reuse pass's, which needs no record
         self.reuse_light_only = reuse_light_only
         self.debias = debias  # renderer.debias: render paths may go on past their cache termination (q per frame)
-        self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples)
+        self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples, roulette)
         self._cores: dict = {}
         self.core = self._core(RandomSource.counter_uniforms)
         self.frames = 1  # frames the renderer will trace (backend=auto weighs a compile against all of them)
@@ -180,7 +186,7 @@ class NRCPathTracer:
                 self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V, self.cache_target, self.debias),
                 termination=self.termination, uniforms=uniforms, inline_shadows=False,
                 point_lights=self.light_sampling.equiangular_points(s), reuse_vertex=self.reuse_vertex,
-                reuse_light_only=self.reuse_light_only)
+                reuse_light_only=self.reuse_light_only, unbiased_cap=self.unbiased_max_vertices)
             self._cores[uniforms].warm_fraction = 1 / 12  # see Core.warm_fraction
         return self._cores[uniforms]
 

@@ -57,13 +57,13 @@ from nrc.camera import Camera
 from nrc.render.radiance_caching.frame_log import LIGHT_SCALARS, FrameLog
 from nrc.render.radiance_caching.inference_filter import filtered_query
 from nrc.render.radiance_caching.paths import NRCPathTracer, PathSet
-from nrc.render.radiance_caching.settings import NRCSettings, app_checks
+from nrc.render.radiance_caching.settings import NRCSettings, app_checks, ring_size
 from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 from nrc.transport.rng import RandomSource
 from nrc.render.wavefront.machine import compiled_graphs
 from nrc.render.wavefront.reuse import make_reuse
-from nrc.render.radiance_caching.training_set import (auto_training_size, frame_records, medium_pixels,
+from nrc.render.radiance_caching.training_set import (auto_training_size, frame_records, medium_pixel_mask,
                                                       training_positions, training_targets)
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
@@ -149,21 +149,21 @@ class NRCRenderer:
             cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed)
         self.batch_filter = make_batch_filter(cfg.batch_filter)
         tr = st.training
-        self.medium_pixels: int | None = None
+        self.medium_mask = medium_pixel_mask(scene.camera, scene.grid)  # (H, W) bool: the flicker figure's pixels
+        self.medium_pixels = int(self.medium_mask.sum())
         if tr.auto:  # the training budget sized to the pixels that see the medium (training_set.py)
-            self.medium_pixels = medium_pixels(scene.camera, scene.grid)
             w, h = auto_training_size(self.medium_pixels, scene.camera.width, scene.camera.height,
                                       tr.paths_per_pixel, tr.min_paths, tr.max_paths)
             tr = replace(tr, width=w, height=h)
             self.settings = st = replace(st, training=tr)
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
-        self.ring = RingBuffer(tr.ring_buffer, self.device)
+        self.ring = RingBuffer(ring_size(tr), self.device)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
         self.tracer = NRCPathTracer(scene, self.transmittance, st.termination, tr.records_per_path,
                                     tr.extra_vertices, st.slots, st.shadow_batch, st.brick, st.free_flight,
                                     st.backend, st.steps_per_call, st.compile_min_samples, st.cache_target,
                                     st.light_sampling, st.reuse.vertex(scene.g), st.debias.enabled,
-                                    st.reuse.light_only)
+                                    st.reuse.light_only, st.roulette, tr.unbiased_max_vertices)
         self.reuse = make_reuse(st.reuse, scene.g, scene.integrator.spp, scene.grid, scene.albedo)
         self.tracer.frames = self.frames
         self.lights = st.light_sampling.sampler(scene)
@@ -343,6 +343,17 @@ class NRCRenderer:
             self.reuse.load_state_dict(state.get("reuse"), self.frame_camera(frame - 1), self.device)
         return frame, accum, int(state["n_accum"])
 
+    def _flicker(self, output: torch.Tensor, previous: torch.Tensor | None) -> float | None:
+        """Mean ``|output - previous|`` over the pixels that see the medium and the channels, over the mean of the
+        reference there (of ``output`` without a reference); ``None`` for the first frame. metrics.json's
+        ``flicker`` is its mean over the second half of the frames (a static camera: the cache's own change and
+        noise; with ``renderer.animate`` it includes the motion)."""
+        m = self.medium_mask
+        if previous is None or not bool(m.any()):
+            return None
+        scale = float(self.reference[m.cpu().numpy()].mean()) if self.reference is not None else float(output[m].mean())
+        return float((output - previous).abs()[m].mean()) / scale if scale > 0 else None
+
     # ------------------------------------------------------------------ the frame loop
     def render(self, progress: bool = False, on_frame: FrameCallback | None = None) -> RenderResult:
         """Run ``frames`` frames; ``on_frame(frame, image, output, stats)`` is called after each."""
@@ -362,6 +373,7 @@ class NRCRenderer:
                 raise ConfigError(f"renderer.resume: the checkpoint is at frame {start}, frames={self.frames}")
         step = sum(log.history.get("train_batches", []))
         output = accum
+        previous = None  # the last frame's output (the flicker figure)
         t_start = t_saved = time.perf_counter()
         done = start
         self.interrupted = None
@@ -375,6 +387,8 @@ class NRCRenderer:
                     output = accum / n_accum
                 else:
                     output = image
+                stats["flicker"] = self._flicker(output, previous)
+                previous = output.clone()
                 out_np = output.cpu().numpy()
                 if self.reference is not None:
                     from nrc.evaluation.metrics import mse, rel_mse
@@ -425,6 +439,8 @@ class NRCRenderer:
             "time_infer_s": h.get("time_infer_s", []), "time_train_s": h.get("time_train_s", []),
             "loss_per_frame": h.get("loss", []), "history": h,
         }
+        changes = [x for x in h.get("flicker", []) if x is not None]
+        metrics["flicker"] = float(np.mean(changes[len(changes) // 2:])) if changes else None
         if self.reference is not None:
             metrics["final_rel_mse"] = h["rel_mse"][-1]
             metrics["final_mse"] = h["mse"][-1]

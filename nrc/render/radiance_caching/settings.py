@@ -14,6 +14,7 @@ from nrc.errors import ConfigError
 from nrc.render.radiance_caching.debias import DebiasSettings
 from nrc.render.radiance_caching.termination import Termination
 from nrc.render.wavefront.reuse import ReuseSettings
+from nrc.render.wavefront.step import RussianRoulette
 from nrc.transport.light_sampling import LightSamplingSettings
 
 ANIMATIONS = ("none", "orbit", "sun")
@@ -27,7 +28,8 @@ class TrainingSettings:
     records_per_path: int  # V
     extra_vertices: int  # vertices a training path goes past the render path's stop
     unbiased_fraction: float  # probability that a training path never terminates into the cache
-    ring_buffer: int  # records kept from earlier frames
+    unbiased_max_vertices: int  # ... until this vertex after all (0: never; it runs to max_scatter)
+    ring_buffer: int | None  # records kept from earlier frames; None: auto (RING_FRAMES frames of records, capped)
     query_weights: str = "raw"  # cache weights of the training paths' terminal queries: ema | raw
     paths_per_pixel: float = 1.0  # auto: training paths per pixel that sees the medium
     min_paths: int = 16384  # auto: the floor
@@ -71,12 +73,16 @@ class NRCSettings:
     checkpoint_seconds: float | None
     reference: str | None
     resume: str | None
+    roulette: RussianRoulette | None = None  # throughput roulette of the long paths (unbiased training paths, suffixes)
 
     @classmethod
     def from_config(cls, renderer: Any) -> NRCSettings:
         cfg = ConfigReader(renderer, "renderer")
         cfg.get_choice("name", ["nrc"])
         tr, inf, anim, log = cfg.block("training"), cfg.block("inference"), cfg.block("animate"), cfg.block("log")
+        rr = cfg.block("russian_roulette")
+        roulette = RussianRoulette(rr.get_int("start", 8, lo=1), rr.get_float("max_survival", 1.0, lo=0.05, hi=1.0))
+        roulette = roulette if rr.get_bool("enabled", False) else None
         settings = cls(
             slots=cfg.get_int("slots", 1 << 16, lo=1),
             shadow_batch=cfg.get_int("shadow_batch", 1 << 17, lo=1),
@@ -95,7 +101,8 @@ class NRCSettings:
                 records_per_path=tr.get_int("records_per_path", 4, lo=1),
                 extra_vertices=tr.get_int("extra_vertices", 3, lo=0),
                 unbiased_fraction=tr.get_float("unbiased_fraction", 0.25, lo=0.0, hi=1.0),
-                ring_buffer=tr.get_int("ring_buffer", 1 << 18, lo=1),
+                unbiased_max_vertices=tr.get_int("unbiased_max_vertices", 0, lo=0),
+                ring_buffer=_ring_buffer(tr),
                 query_weights=tr.get_choice("query_weights", ["raw", "ema"], "raw"),
                 paths_per_pixel=tr.get_float("paths_per_pixel", 1.0, lo=0.0, lo_open=True),
                 min_paths=tr.get_int("min_paths", 16384, lo=1),
@@ -110,8 +117,9 @@ class NRCSettings:
             **_checkpoint_cadence(cfg),
             reference=cfg.get_optional_str("reference"),
             resume=cfg.get_optional_str("resume"),
+            roulette=roulette,
         )
-        for block in (tr, inf, anim, log, cfg):
+        for block in (tr, inf, anim, log, rr, cfg):
             block.finish()
         t = settings.training
         if t.min_paths > t.max_paths:
@@ -135,6 +143,25 @@ def _training_size(tr: ConfigReader) -> dict[str, Any]:
         raise ConfigError(f"renderer.training.width and height must both be auto or both integers, got "
                           f"width={raw['width']!r} height={raw['height']!r}")
     return {"width": tr.get_int("width", lo=1), "height": tr.get_int("height", lo=1)}
+
+
+RING_FRAMES = 4  # ring_buffer: auto keeps this many frames of records ...
+RING_CAP = 1 << 18  # ... and at most this many (the fixed size used before auto; 160 x 90 reaches it)
+
+
+def _ring_buffer(tr: ConfigReader) -> int | None:
+    """``training.ring_buffer``: ``auto`` or an integer >= 1."""
+    if tr.get_raw("ring_buffer", "auto") == "auto":
+        return None
+    return tr.get_int("ring_buffer", lo=1)
+
+
+def ring_size(training: TrainingSettings) -> int:
+    """Records the ring buffer keeps: the setting, or (auto) :data:`RING_FRAMES` frames of the training image's
+    records, at most :data:`RING_CAP`."""
+    if training.ring_buffer is not None:
+        return training.ring_buffer
+    return min(RING_CAP, RING_FRAMES * training.n_paths * training.records_per_path)
 
 
 CHECKPOINT_SECONDS = 60.0  # checkpoint_every: auto writes at least this often while rendering

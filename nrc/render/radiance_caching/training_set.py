@@ -64,12 +64,18 @@ MEDIUM_SAMPLES = 48  # density lookups along a pixel's centre ray when counting 
 
 
 def medium_pixels(camera, grid, samples: int = MEDIUM_SAMPLES, chunk: int = 1 << 15) -> int:
-    """Pixels whose centre ray meets nonzero density: ``samples`` stratified midpoints of the ray's segment
-    inside the grid's box are looked up (a medium thinner than the spacing can be missed; the count sizes a
-    budget, it is not an estimator). Memory: ``chunk x samples`` lookups at a time."""
+    """How many pixels :func:`medium_pixel_mask` selects."""
+    return int(medium_pixel_mask(camera, grid, samples, chunk).sum())
+
+
+def medium_pixel_mask(camera, grid, samples: int = MEDIUM_SAMPLES, chunk: int = 1 << 15) -> Tensor:
+    """``(H, W)`` bool: pixels whose centre ray meets nonzero density: ``samples`` stratified midpoints of the
+    ray's segment inside the grid's box are looked up (a medium thinner than the spacing can be missed; the mask
+    sizes a budget and selects pixels for the flicker figure, it is not an estimator). Memory: ``chunk x samples``
+    lookups at a time."""
     n = camera.num_pixels
     dev = grid.device
-    count = 0
+    out = torch.zeros(n, dtype=torch.bool, device=dev)
     mid = (torch.arange(samples, device=dev, dtype=torch.float32) + 0.5) / samples
     for start in range(0, n, chunk):
         pix = torch.arange(start, min(n, start + chunk), device=dev)
@@ -82,8 +88,8 @@ def medium_pixels(camera, grid, samples: int = MEDIUM_SAMPLES, chunk: int = 1 <<
         t = t0[:, None] + (t1 - t0)[:, None] * mid[None]
         x = o[:, None, :] + t[..., None] * d[:, None, :]
         dens = grid.lookup(x.reshape(-1, 3)).reshape(len(o), samples)
-        count += int((dens > 0).any(dim=1).sum())
-    return count
+        out[pix[hit]] = (dens > 0).any(dim=1)
+    return out.reshape(camera.height, camera.width)
 
 
 def auto_training_size(n_medium: int, image_width: int, image_height: int, paths_per_pixel: float,

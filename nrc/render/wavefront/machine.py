@@ -55,21 +55,33 @@ class SceneInputs:
         return SceneInputs(P.contiguous(), pad(density), pad(majorant))
 
 
+def _default_inductor_cache() -> str:
+    return str(Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nrc" / "inductor")
+
+
+# Set on import, before anything compiles: torch sets the variable itself (to /tmp/torchinductor_<user>) the first
+# time it compiles anything (the NRC cache's network, say), and every later compile follows it.
+os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", _default_inductor_cache())
+
+
 def inductor_cache_dir() -> Path:
     """The persistent compile cache: ``$TORCHINDUCTOR_CACHE_DIR``, set to ``~/.cache/nrc/inductor`` when unset."""
-    default = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nrc" / "inductor"
-    path = Path(os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(default)))
+    path = Path(os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", _default_inductor_cache()))
     path.mkdir(parents=True, exist_ok=True)
     return path
 
 
 def _marker(step: Transport, device: torch.device) -> Path:
-    text = repr((step.structure, str(device.type), torch.__version__))
+    # CPU kernels are specialised on the thread count (see TRACK_OPTIONS): a joblib worker with fewer threads than
+    # the process that compiled finds no kernels in the cache, so the marker names the count too
+    threads = torch.get_num_threads() if device.type == "cpu" else 0
+    text = repr((step.structure, str(device.type), torch.__version__, threads))
     return inductor_cache_dir() / f"nrc-{hashlib.sha1(text.encode()).hexdigest()[:16]}.compiled"
 
 
 def is_cached(step: Transport, device: torch.device) -> bool:
-    """A compiled machine of this structure was built before with this cache (a compile is a cache load)."""
+    """A compiled machine of this structure was built before with this cache and, on the CPU, this thread count
+    (a compile is a cache load)."""
     return _marker(step, device).exists()
 
 

@@ -21,7 +21,7 @@ from nrc.render.wavefront.driver import EquiangularQueue, ShadowQueue
 from nrc.render.wavefront.machine import (Machine, SceneInputs, compiled_machine_ready, is_cached,
                                           machine_for)
 from nrc.render.wavefront.state import FLIGHT, Layout
-from nrc.render.wavefront.step import NRCRule, Transport, Uniforms
+from nrc.render.wavefront.step import NRCRule, RussianRoulette, Transport, Uniforms
 from nrc.transport.equiangular import EquiangularSampler
 from nrc.transport.light_sampling import LightSampler, LightTable
 from nrc.transport.rng import uniforms as counter_uniforms
@@ -73,7 +73,7 @@ class Core:
     compile_min_samples: int
     grid: Any = None
     bricks: Any = None
-    scalars: tuple = ()  # (albedo, g, max_scatter, roulette threshold, rr_start, termination) for P
+    scalars: tuple = ()  # (albedo, g, max_scatter, roulette threshold, throughput roulette, termination, unbiased cap) for P
     last_startup_s: float = 0.0  # compile or cache-load seconds spent by the last choose()
     point_lights: tuple = ()  # sampled equi-angularly along segments (left out of the step's light table)
     _equiangular: Any = None  # their EquiangularSampler, built by the first equiangular_queue()
@@ -86,9 +86,9 @@ class Core:
     def inputs_for(self, lights: LightSampler, debias_q: float = 0.0) -> SceneInputs:
         """The scene inputs with other lights of the same structure (an animated sun) and the frame's debiasing
         probability (``renderer.debias``): only ``P`` changes."""
-        albedo, g, max_scatter, thr, rr_start, termination = self.scalars
-        P = self.step.params(self.grid, self.bricks, LightTable(lights), albedo, g, max_scatter, thr, rr_start,
-                             termination, debias_q)
+        albedo, g, max_scatter, thr, rr, termination, cap = self.scalars
+        P = self.step.params(self.grid, self.bricks, LightTable(lights), albedo, g, max_scatter, thr, rr,
+                             termination, debias_q, cap)
         return SceneInputs(P, self.inputs.density, self.inputs.majorant)
 
     def unsupported_reason(self) -> str | None:
@@ -146,9 +146,10 @@ class Core:
 
 def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float, max_scatter: int,
                transmittance: Any, brick: Any, free_flight: str, backend: str, steps_per_call: int,
-               compile_min_samples: int, rr_start: int | None = None, nrc: NRCRule | None = None,
+               compile_min_samples: int, rr: RussianRoulette | None = None, nrc: NRCRule | None = None,
                termination: Any = None, uniforms: Uniforms = counter_uniforms, inline_shadows: bool = True,
-               point_lights: tuple = (), reuse_vertex: int = 0, reuse_light_only: bool = False) -> Core:
+               point_lights: tuple = (), reuse_vertex: int = 0, reuse_light_only: bool = False,
+               unbiased_cap: int = 0) -> Core:
     """The core for a scene and a renderer's settings (``nrc``: the termination rule and ``V``;
     ``inline_shadows=False``: shadow rays always queued for the estimator; ``point_lights``: those sampled
     equi-angularly, which ``lights`` must leave out; ``reuse_vertex``: the render paths' vertex whose next-event
@@ -169,14 +170,14 @@ def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float,
     # shadow steps lengthen the chain of calls a frame waits for, which dominates NRC's short frames
     # (160x90, 1 spp: trace 0.33 s inline, 0.25 s queued; pt 128x72 x 64 spp: 0.99 s inline, 1.9 s queued).
     inline = transmittance.name == "ratio" and inline_shadows
-    step = Transport(layout, table, bricks.n_tables, inline, thr > 0, rr_start is not None, nrc, uniforms,
+    step = Transport(layout, table, bricks.n_tables, inline, thr > 0, rr is not None, nrc, uniforms,
                      sampler=lights, reuse_vertex=reuse_vertex, reuse_light_only=reuse_light_only)
-    eager_step = Transport(layout, table, bricks.n_tables, False, thr > 0, rr_start is not None, nrc, uniforms,
+    eager_step = Transport(layout, table, bricks.n_tables, False, thr > 0, rr is not None, nrc, uniforms,
                            sampler=lights, reuse_vertex=reuse_vertex, reuse_light_only=reuse_light_only) if inline else step
-    P = step.params(grid, bricks, table, albedo, g, max_scatter, thr, rr_start, termination)
+    P = step.params(grid, bricks, table, albedo, g, max_scatter, thr, rr, termination, unbiased_cap=unbiased_cap)
     inputs = SceneInputs.build(P, grid.density, bricks.flat)
     return Core(step, eager_step, inputs, majorants, transmittance, grid.device, backend,
-                steps_per_call, compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr_start, termination),
+                steps_per_call, compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr, termination, unbiased_cap),
                 point_lights=tuple(point_lights))
 
 

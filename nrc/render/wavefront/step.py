@@ -56,6 +56,18 @@ Uniforms = Callable[[Tensor, Tensor, int], list[Tensor]]
 
 
 @dataclass(frozen=True)
+class RussianRoulette:
+    """The path tracer's throughput roulette (``renderer.russian_roulette``): from scattering event ``start`` on
+    a path survives each vertex with ``q = min(clamp(max throughput, 0.05, 1), max_survival)`` and carries
+    ``1 / q``. ``max_survival = 1`` never stops a path whose throughput stays near 1 (albedo 1); ``< 1`` (Mitsuba
+    3's rule uses 0.95) bounds a path's expected length after ``start`` by ``1 / (1 - max_survival)`` vertices,
+    at the price of weights that grow as ``max_survival^-n``."""
+
+    start: int
+    max_survival: float = 1.0
+
+
+@dataclass(frozen=True)
 class NRCRule:
     """What the ``nrc`` vertex needs of the termination rule and the training set (structure only; the
     numbers travel in ``P``)."""
@@ -86,7 +98,8 @@ class Transport:
         inline_shadow: shadow rays by ratio tracking inside the step; ``False`` queues them (``shadow = 2``)
             for the configured transmittance estimator.
         roulette: ratio-tracking roulette on (its threshold is in ``P``).
-        russian_roulette: throughput roulette on (its start is in ``P``).
+        russian_roulette: throughput roulette on (its start and the survival cap ``q_max`` are in ``P``: a path
+            from vertex ``start`` on survives with ``q = clamp(max throughput, 0.05, q_max)``, weight ``1 / q``).
         nrc: the termination rule and ``V`` for ``renderer=nrc``, ``None`` for ``pt``.
         uniforms: the random-number function ``(key, counter, lanes) -> lanes x (S,)`` (tests script it).
     """
@@ -117,8 +130,9 @@ class Transport:
         m = lights.candidates
         self.lanes = self.lane_light + (lights.lanes if lights.supported else 4 * m + (m > 1))
         names = ["lo", "lo", "lo", "hi", "hi", "hi", "dims", "dims", "dims", "scale", "albedo", "g", "max_scatter",
-                 "roulette", "rr_start", "min_vertices", "p_continue", "spread_c"]
+                 "roulette", "rr_start", "min_vertices", "p_continue", "spread_c", "unbiased_cap"]
         names += ["debias_q"] if self.debias else []
+        names += ["rr_q_max"] if self.rr else []
         self.ix: dict[str, int] = {}
         for k, name in enumerate(names):
             self.ix.setdefault(name, k)
@@ -145,22 +159,27 @@ class Transport:
 
     # ------------------------------------------------------------------ scene inputs
     def params(self, grid: Any, bricks: BrickTables, lights: LightTable, albedo: float, g: float,
-               max_scatter: int, roulette_threshold: float, rr_start: int | None,
-               termination: Any = None, debias_q: float = 0.0) -> Tensor:
-        """The scene's numbers as the step's ``P`` input (float32 on the grid's device; ``debias_q``: the
-        probability that a render path goes on past its cache termination, with ``renderer.debias``)."""
+               max_scatter: int, roulette_threshold: float, rr: RussianRoulette | None,
+               termination: Any = None, debias_q: float = 0.0, unbiased_cap: int = 0) -> Tensor:
+        """The scene's numbers as the step's ``P`` input (float32 on the grid's device; ``rr``: the throughput
+        roulette's start and survival cap; ``debias_q``: the probability that a render path goes on past its cache
+        termination, with ``renderer.debias``; ``unbiased_cap``: the vertex at which an unbiased training path
+        terminates into the cache after all, 0 for never)."""
         if lights.structure != self.lights.structure or bricks.n_tables != self.n_tables or \
                 lights.supported != self.lights.supported:
             raise ValueError("scene structure differs from the step's")
         vals = [*grid.box.lo.tolist(), *grid.box.hi.tolist(), *[float(n) for n in grid.shape],
                 float(grid.density_scale), float(albedo), float(g), float(max_scatter), float(roulette_threshold),
-                float(rr_start if rr_start is not None else 0)]
+                float(rr.start if rr is not None else 0)]
         if termination is not None:
             vals += [float(termination.min_vertices), float(termination.p_continue), float(termination.spread_c)]
         else:
             vals += [0.0, 0.0, 0.0]
+        vals.append(float(unbiased_cap))
         if self.debias:
             vals.append(float(debias_q))
+        if self.rr:
+            vals.append(float(rr.max_survival if rr is not None else 1.0))
         vals += bricks.values + lights.values
         return torch.tensor(vals, dtype=torch.float32, device=grid.device)
 
@@ -266,6 +285,10 @@ class Transport:
             else:
                 fire = eligible & (spread * spread > p[self.ix["spread_c"]] * a0)
             n_term = torch.where(fire & (s.n_term == 0) & (s.never == 0), n_s + s.extra, s.n_term)
+            # renderer.training.unbiased_max_vertices: an unbiased training path ends in the cache at that vertex
+            cap = p[self.ix["unbiased_cap"]]
+            capped = (s.never == 1) & (cap > 0) & (n_s.to(torch.float32) >= cap)
+            n_term = torch.where(capped & (n_term == 0), n_s, n_term)
             terminate = (n_term > 0) & (n_s >= n_term)
             is_train = s.rec_base >= 0
             if self.debias:  # with probability q the render path goes on as a path-traced suffix
@@ -324,7 +347,7 @@ class Transport:
         if not lights.has_env:  # the last vertex only continues when phase sampling can reach the sky (MIS)
             stop = stop | (n_s.to(torch.float32) >= max_scatter)
         if self.rr:
-            q = amax.clamp(0.05, 1.0)
+            q = torch.minimum(amax.clamp(0.05, 1.0), p[self.ix["rr_q_max"]])
             in_rr = n_s.to(torch.float32) >= p[self.ix["rr_start"]]
             stop = stop | (in_rr & (u[self.lane_rr] >= q))
             beta_s = tuple(torch.where(in_rr, b / q, b) for b in beta_s)

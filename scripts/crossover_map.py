@@ -1,0 +1,160 @@
+"""Where NRC pays off: speed versus error over optical depth (the crossover map).
+
+For every point -- the thick preset (``scene=thick``: the Disney cloud, albedo 0.99, g 0.85, sun + sky) at density
+scale 0.35, 0.6, 2, 5 and 10, and at albedo 0.95 and 1.0 at density 5 -- it runs ``scripts/speed_vs_error.py``
+(single frames, equal time per frame, OIDN on both sides; its reference rendered and kept in data/references when
+missing) and collects, from its ``summary.json``: the median optical depth over the camera rays that see the medium
+(``nrc.volume.optical_depth``), NRC / PT and NRC+OIDN / PT+OIDN at equal time per frame (floor-corrected relMSE
+over the medium pixels), NRC's image mean over the reference's, and the flicker of each. Writes
+``<out>/map.json``, ``<out>/map.md`` and ``<out>/map.png`` (NRC+OIDN / PT+OIDN against optical depth, a line per
+albedo). Each point's own tables stay in ``<out>/<point>/``. A point whose ``summary.json`` exists is not run again
+(delete it to re-measure). Usage::
+
+    python scripts/crossover_map.py --out docs/results/crossover_160x90 [--points d0.6,d5] [--width 160 --height 90]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
+# name -> (scene overrides on top of the thick preset, reference spp)
+POINTS: dict[str, tuple[list[str], int]] = {
+    "d0.35": (["scene.volume.density_scale=0.35"], 2048),
+    "d0.6": (["scene.volume.density_scale=0.6"], 2048),
+    "d2": (["scene.volume.density_scale=2"], 1024),
+    "d5": ([], 1024),
+    "d10": (["scene.volume.density_scale=10"], 512),
+    "d5_a0.95": (["scene.volume.albedo=0.95"], 1024),
+    "d5_a1": (["scene.volume.albedo=1.0", "scene.integrator.max_scatter=2048"], 512),
+}
+
+
+def optical_depth(overrides: list[str]) -> dict:
+    from nrc.config import absolute_paths, compose
+    from nrc.scene import load_scene
+    from nrc.volume.optical_depth import scene_optical_depth
+
+    cfg = compose(overrides)
+    absolute_paths(cfg)
+    scene = load_scene(cfg.scene)
+    od = scene_optical_depth(scene)
+    return {"tau_median": od.median, "tau_reduced_median": od.median_reduced, "albedo": scene.albedo,
+            "density_scale": float(cfg.scene.volume.density_scale)}
+
+
+def pick(summary: dict, config: str, baseline: str) -> dict | None:
+    for q in summary.get("equal_time", []):
+        if q["config"] == config and q.get("baseline") == baseline:
+            return q
+    return None
+
+
+def row_of(summary: dict, config: str) -> dict | None:
+    rows = [r for r in summary["rows"] if r["config"] == config and r["mode"] == "single"]
+    return rows[0] if rows else None
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--points", default=",".join(POINTS))
+    p.add_argument("--width", type=int, default=160)
+    p.add_argument("--height", type=int, default=90)
+    p.add_argument("--pt-spp", default="1,2,4,8,16")
+    p.add_argument("--warmup", type=int, default=30)
+    p.add_argument("--frames", type=int, default=4)
+    p.add_argument("--nrc", default="renderer=nrc,renderer.backend=compiled", help="the NRC configuration's overrides")
+    args, extra = p.parse_known_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = []
+    for name in args.points.split(","):
+        ovs, ref_spp = POINTS[name]
+        scene = ["scene=thick", f"scene.volume.path={VDB}", f"scene.camera.width={args.width}",
+                 f"scene.camera.height={args.height}", *ovs, *extra]
+        out = args.out / name
+        if not (out / "summary.json").is_file():
+            t0 = time.perf_counter()
+            cmd = [sys.executable, str(REPO / "scripts" / "speed_vs_error.py"), "--mode", "single", "--denoise",
+                   "--repeats", "2", "--configs", "", "--preset", "none",
+                   "--config", "pt_compiled=renderer=pt,renderer.backend=compiled,transmittance=ratio",
+                   "--config", f"nrc={args.nrc}", "--pt-spp", args.pt_spp, "--warmup", str(args.warmup),
+                   "--frames", str(args.frames), "--ref-spp", str(ref_spp), "--out", str(out), "--quiet", *scene]
+            print(f"[{name}] {' '.join(cmd[2:])}", flush=True)
+            subprocess.run(cmd, cwd=REPO, check=True)
+            print(f"[{name}] done in {time.perf_counter() - t0:.0f} s", flush=True)
+        s = json.loads((out / "summary.json").read_text())
+        res = {"point": name, **optical_depth(scene), "ref_spp": ref_spp,
+               "rel_mse_floor_medium": s["meta"]["rel_mse_floor_medium"]}
+        for key, cfg, base in (("raw", "nrc", "pt"), ("oidn", "nrc+oidn", "pt+oidn")):
+            q = pick(s, cfg, base)
+            res[f"ratio_{key}"] = None if q is None else q.get("ratio_rel_mse_medium_corr")
+            res[f"ratio_{key}_uncorrected"] = None if q is None else q.get("ratio_rel_mse_medium")
+            res[f"pt_extrapolated_{key}"] = None if q is None else q.get("extrapolated")
+            res[f"time_frame_{key}_s"] = None if q is None else q.get("time_s")
+        for cfg in ("nrc", "nrc+oidn", "pt_compiled", "pt_compiled+oidn"):
+            rows = [r for r in s["rows"] if r["config"] == cfg]
+            if rows:
+                fastest = min(rows, key=lambda r: r["time_s"])
+                res[f"{cfg}_mean_ratio_medium"] = fastest.get("mean_ratio_medium")
+                res[f"{cfg}_rel_mse_medium"] = fastest.get("rel_mse_medium")
+                res[f"{cfg}_flicker_medium"] = fastest.get("flicker_medium")
+                res[f"{cfg}_time_s"] = fastest["time_s"]
+        results.append(res)
+        print(json.dumps(res), flush=True)
+    (args.out / "map.json").write_text(json.dumps({"argv": sys.argv[1:], "points": results}, indent=2))
+    lines = [f"{args.width} x {args.height}, equal time per frame after {args.warmup} NRC warm-up frames; ratios of "
+             "floor-corrected relMSE over the medium pixels (< 1: NRC better); PT = the compiled path tracer at 1-16 spp "
+             "(when NRC's frame is faster than PT's 1-spp frame, PT's 1-spp error is used: in PT's favour); "
+             "fastest-frame rows for the image mean and flicker.", "",
+             "| point | median tau | albedo | NRC / PT | NRC+OIDN / PT+OIDN | NRC frame (s) | PT 1 spp (s) | "
+             "NRC mean / ref | flicker NRC / NRC+OIDN / PT / PT+OIDN | ref floor |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+
+    def f(x, n=3):
+        return "–" if x is None else f"{x:.{n}g}"
+
+    for r in results:
+        lines.append(f"| {r['point']} | {r['tau_median']:.1f} | {r['albedo']:g} | {f(r['ratio_raw'])} | "
+                     f"{f(r['ratio_oidn'])} | {f(r.get('nrc_time_s'))} | {f(r.get('pt_compiled_time_s'))} | "
+                     f"{f(r.get('nrc_mean_ratio_medium'))} | {f(r.get('nrc_flicker_medium'), 2)} / "
+                     f"{f(r.get('nrc+oidn_flicker_medium'), 2)} / {f(r.get('pt_compiled_flicker_medium'), 2)} / "
+                     f"{f(r.get('pt_compiled+oidn_flicker_medium'), 2)} | {f(r['rel_mse_floor_medium'], 2)} |")
+    (args.out / "map.md").write_text("\n".join(lines) + "\n")
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6.4, 4.2))
+        for albedo in sorted({r["albedo"] for r in results}):
+            pts = sorted((r["tau_median"], r["ratio_oidn"]) for r in results
+                         if r["albedo"] == albedo and r["ratio_oidn"] is not None and r["ratio_oidn"] > 0)
+            if pts:
+                ax.loglog(*zip(*pts), "-o", label=f"albedo {albedo:g}, NRC+OIDN / PT+OIDN")
+        pts = sorted((r["tau_median"], r["ratio_raw"]) for r in results if r["ratio_raw"] and r["ratio_raw"] > 0)
+        if pts:
+            ax.loglog(*zip(*pts), ":s", color="grey", label="raw NRC / raw PT (all albedos)")
+        ax.axhline(1.0, color="k", lw=0.8)
+        ax.set_xlabel("median optical depth of the camera rays that see the medium")
+        ax.set_ylabel("relMSE ratio at equal time per frame")
+        ax.set_title(f"Where NRC pays off ({args.width} x {args.height}); below 1: NRC wins")
+        ax.grid(True, which="both", lw=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(args.out / "map.png", dpi=110)
+    except ImportError:
+        pass
+    print((args.out / "map.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
