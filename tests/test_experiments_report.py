@@ -58,7 +58,7 @@ def docs(tmp_path):
     return d
 
 
-def readme(names=("clouds", "nrc_vs_pt", "sun"), body: str = "old numbers, 9.4x") -> str:
+def readme(names=("crossover", "clouds", "nrc_vs_pt", "sun"), body: str = "old numbers, 9.4x") -> str:
     blocks = "".join(f"\n{ex.README_BEGIN.format(n)}\n{body}\n{ex.README_END}\n\nbetween\n" for n in names)
     return BEFORE + blocks + AFTER
 
@@ -105,9 +105,9 @@ def test_results_rewrites_the_readme_block_only_and_is_idempotent(docs, tmp_path
     assert ex.main(args) == 0
     text = path.read_text()
     assert text.startswith(BEFORE) and text.endswith(AFTER) and "9.4x" not in text
-    for name in ("clouds", "nrc_vs_pt", "sun"):
+    for name in ("crossover", "clouds", "nrc_vs_pt", "sun"):
         assert text.count(ex.README_BEGIN.format(name)) == 1
-    assert text.count(ex.README_END) == 3 and text.count("\nbetween\n") == 3
+    assert text.count(ex.README_END) == 4 and text.count("\nbetween\n") == 4
     # the README and docs/results.md state the same ratios (one source)
     results = (docs / "results.md").read_text()
     assert "relMSE ratio **3.5**" in results and "to 3.5x (side-lit" in text.replace("\n", " ")
@@ -122,14 +122,14 @@ def test_results_rewrites_the_readme_block_only_and_is_idempotent(docs, tmp_path
 
 def test_a_missing_marker_is_one_error_line(docs, tmp_path):
     path = tmp_path / "README.md"
-    path.write_text(readme(names=("clouds", "nrc_vs_pt")))
+    path.write_text(readme(names=("crossover", "clouds", "nrc_vs_pt")))
     with pytest.raises(SystemExit) as e:
         ex.main(["batch_filters", "--results", "--docs", str(docs), "--root", str(tmp_path / "none"),
                  "--readme", str(path)])
     msg = str(e.value)
     assert msg.startswith("experiments_report: README.md: no line `<!-- generated: scripts/experiments_report.py "
                           "--results: sun -->`") and "\n" not in msg
-    assert path.read_text() == readme(names=("clouds", "nrc_vs_pt"))  # nothing written
+    assert path.read_text() == readme(names=("crossover", "clouds", "nrc_vs_pt"))  # nothing written
     assert not (docs / "results.md").exists() and not (docs / "results" / "batch_filters.md").exists()
 
 
@@ -140,7 +140,7 @@ def test_a_missing_marker_is_one_error_line(docs, tmp_path):
 ])
 def test_bad_markers_are_named(text, says):
     with pytest.raises(ex.ReadmeError, match=says):
-        ex.rewrite_readme(text, {"clouds": ["a"], "nrc_vs_pt": ["b"], "sun": ["c"]})
+        ex.rewrite_readme(text, {"crossover": ["x"], "clouds": ["a"], "nrc_vs_pt": ["b"], "sun": ["c"]})
 
 
 def test_wrap_never_starts_a_line_with_a_list_marker():
@@ -155,3 +155,30 @@ def test_a_report_without_runs_keeps_its_committed_markdown(tmp_path):
     kept.write_text("measured table")
     assert ex.main(["batch_filters", "--docs", str(tmp_path / "docs"), "--root", str(tmp_path / "none")]) == 0
     assert kept.read_text() == "measured table"
+
+
+def crossover_map(d, ratios, name=ex.CROSSOVER):
+    """A made-up ``scripts/crossover_map.py`` output: ``ratios`` = [(tau, albedo, NRC+OIDN / PT+OIDN)]."""
+    out = d / "results" / name
+    out.mkdir(parents=True, exist_ok=True)
+    pts = [{"point": f"p{i}", "tau_median": tau, "albedo": a, "ratio_oidn": r, "ratio_raw": 2 * r,
+            "nrc_mean_ratio_medium": 0.97} for i, (tau, a, r) in enumerate(ratios)]
+    (out / "map.json").write_text(json.dumps({"argv": ["--out", "x"], "points": pts}))
+    (out / "map.md").write_text("| point | ... |\n|---|---|\n")
+
+
+def test_crossover_summary_states_where_nrc_pays_off(tmp_path):
+    assert ex.crossover_summary(tmp_path) is None and ex.crossover_section(tmp_path) == []
+    crossover_map(tmp_path, [(7.0, 0.99, 3.0), (98.0, 0.99, 0.8), (196.0, 0.99, 0.5), (98.0, 1.0, 0.6)])
+    text = ex.crossover_summary(tmp_path)
+    assert "at albedo 0.99: 3x at optical depth 7, 0.8x at optical depth 98, 0.5x at optical depth 196" in text
+    assert "at albedo 1: 0.6x at optical depth 98" in text
+    assert "ahead at 3 of 4 points, from optical depth 98 (albedo 0.99) on" in text
+    assert "raw NRC over the raw path tracer 1–6x" in text and "image mean 0.97 of the reference's" in text
+    crossover_map(tmp_path, [(7.0, 0.99, 3.0), (98.0, 0.99, 1.5)])
+    assert "beats the path tracer + OIDN nowhere on the map" in ex.crossover_summary(tmp_path)
+    assert ex.crossover_section(tmp_path)[0].startswith("## Where NRC pays off")
+    crossover_map(tmp_path, [(98.0, 0.99, 0.7)], ex.CROSSOVER + "_warm")
+    assert "With a warm cache (150 warm-up frames): 0.7x at optical depth 98 (albedo 0.99, image mean 0.97)" in \
+        ex.crossover_summary(tmp_path)
+    assert any("A warm cache" in line for line in ex.crossover_section(tmp_path))

@@ -138,3 +138,27 @@ def test_latlong_environment_from_the_command_line(tmp_path):
                             f"scene.lights.0.path={tmp_path / 'sky.png'}"]).scene)
     with pytest.raises(ConfigError, match=r"also set scene\.lights\.0\.radiance=null"):
         load_scene(compose(["scene=sky", *SMALL, f"scene.lights.0.path={tmp_path / 'sky.exr'}"]).scene)
+
+
+@pytest.mark.parametrize("preset", ["thick", "thick_cumulus"])
+def test_thick_presets_load_and_render_a_few_pixels(preset, request):
+    """The thick, bright presets: albedo 0.99, g 0.85, sun + sky, optical depth far above the moderate presets'
+    (docs/scenes.md), and a few path-traced pixels that are finite and lit."""
+    import numpy as np
+
+    from nrc.render.pt import PathTracer
+    from nrc.volume.optical_depth import scene_optical_depth
+
+    ovs = [f"scene={preset}", "scene.camera.width=8", "scene.camera.height=5", "scene.integrator.spp=2",
+           "renderer=pt", "renderer.backend=eager"]
+    if preset == "thick":  # the Disney cloud (skipped without ../shared)
+        ovs.append(f"scene.volume.path={request.getfixturevalue('shared_vdb')}")
+    else:
+        ovs.append("scene.volume.procedural.resolution=32")
+    cfg = compose(ovs)
+    scene = load_scene(cfg.scene)
+    assert (scene.albedo, scene.g, scene.integrator.max_scatter) == (0.99, 0.85, 512)
+    assert [type(light) for light in scene.lights] == [DirectionalLight, EnvironmentLight]
+    assert scene_optical_depth(scene).median > 40  # the thick regime (the moderate presets: 3-17)
+    image = PathTracer(scene, cfg).render().image
+    assert np.isfinite(image).all() and image.mean() > 0

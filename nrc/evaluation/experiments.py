@@ -642,11 +642,77 @@ def readme_animation(figures: dict) -> list[str]:
             "[`docs/images/figures.json`](docs/images/figures.json)."]
 
 
+CROSSOVER = "crossover_160x90"  # docs/results/<this>/map.json: scripts/crossover_map.py's output
+
+
+def crossover_summary(docs: Path, link: str = "[`docs/results.md`](docs/results.md)") -> str | None:
+    """Where NRC pays off, in one paragraph, from the crossover map (``scripts/crossover_map.py``): NRC + OIDN over the
+    path tracer + OIDN at equal time per frame along optical depth, per albedo; ``None`` without ``map.json``."""
+    m = _read_json(docs / "results" / CROSSOVER / "map.json")
+    pts = [p for p in (m or {}).get("points", []) if p.get("ratio_oidn") is not None]
+    if not pts:
+        return None
+    size = "x".join(CROSSOVER.split("_")[-1].split("x"))
+    text = (f"**Where NRC pays off** (the crossover map, {link}: the Disney cloud "
+            f"under sun and sky, g 0.85, {size.replace('x', ' x ')}, single frames at equal time per frame after 30 "
+            "warm-up frames, the denoiser's time included, floor-corrected relMSE over the cloud's pixels). "
+            "NRC + OIDN's relMSE over the path tracer + OIDN's")
+    parts = []
+    for albedo in sorted({p["albedo"] for p in pts}):
+        line = sorted((p for p in pts if p["albedo"] == albedo), key=lambda p: p["tau_median"])
+        parts.append(f"at albedo {albedo:g}: " + ", ".join(f"{p['ratio_oidn']:.2g}x at optical depth "
+                                                          f"{p['tau_median']:.0f}" for p in line))
+    text += " is " + "; ".join(parts) + " (median optical depth of the camera rays that see the cloud)"
+    raw = [p for p in pts if p.get("ratio_raw") is not None]
+    if raw:
+        text += f"; raw NRC over the raw path tracer {_range([p['ratio_raw'] for p in raw], 2)}x"
+    means = [p["nrc_mean_ratio_medium"] for p in pts if p.get("nrc_mean_ratio_medium") is not None]
+    if means:
+        text += f"; NRC's image mean {_range(means)} of the reference's"
+    warm = [p for p in ((_read_json(docs / "results" / (CROSSOVER + "_warm") / "map.json") or {}).get("points", []))
+            if p.get("ratio_oidn") is not None]
+    if warm:
+        text += (". With a warm cache (150 warm-up frames): " + ", ".join(
+            f"{p['ratio_oidn']:.2g}x at optical depth {p['tau_median']:.0f} (albedo {p['albedo']:g}, image mean "
+            f"{fmt(p.get('nrc_mean_ratio_medium'), 3)})" for p in sorted(warm, key=lambda p: p["tau_median"])))
+    wins = sorted((p for p in pts if p["ratio_oidn"] < 1), key=lambda p: p["tau_median"])
+    if not wins:
+        text += (". After 30 frames NRC + OIDN beats the path tracer + OIDN nowhere on the map: its remaining error is "
+                 "its cache's bias (the image too dark), which the denoiser cannot remove")
+    elif len(wins) == len(pts):
+        text += ". NRC + OIDN is ahead at every point"
+    else:
+        text += (f". NRC + OIDN is ahead at {len(wins)} of {len(pts)} points, from optical depth "
+                 f"{wins[0]['tau_median']:.0f} (albedo {wins[0]['albedo']:g}) on")
+    return text + "."
+
+
+def crossover_section(docs: Path) -> list[str]:
+    """The map's table and figure for docs/results.md (``[]`` without it)."""
+    d = docs / "results" / CROSSOVER
+    if not (d / "map.md").is_file():
+        return []
+    m = _read_json(d / "map.json") or {}
+    out = ["## Where NRC pays off: the crossover map", "",
+           f"Command (repo root): `python scripts/crossover_map.py {' '.join(m.get('argv') or [])}`; each point's "
+           f"own speed-versus-error tables are in `docs/results/{CROSSOVER}/<point>/`.", "",
+           (d / "map.md").read_text(), "", f"![crossover map](results/{CROSSOVER}/map.png)", ""]
+    w = docs / "results" / (CROSSOVER + "_warm")
+    if (w / "map.md").is_file():
+        mw = _read_json(w / "map.json") or {}
+        out += ["**A warm cache** (150 warm-up frames; command: `python scripts/crossover_map.py "
+                f"{' '.join(mw.get('argv') or [])}`):", "", (w / "map.md").read_text(), ""]
+    return out
+
+
 def readme_blocks(docs: Path) -> dict[str, list[str]]:
     """The README's generated caption paragraphs, per block name, from the result files under ``docs``."""
     figures = _read_json(docs / "images" / "figures.json") or {}
     cmp = _read_json(docs / "images" / "nrc_vs_pt.json") or figures.get("comparison")
-    return {"clouds": readme_clouds(figures),
+    cross = crossover_summary(docs)
+    return {"crossover": [cross] if cross else ["(not measured: `docs/results/crossover_160x90/map.json` is missing; "
+                                                 "`python scripts/crossover_map.py` writes it)"],
+            "clouds": readme_clouds(figures),
             "nrc_vs_pt": readme_comparison(cmp, figures, speed_summaries(docs)),
             "sun": readme_animation(figures)}
 
@@ -717,8 +783,12 @@ def assemble_results(docs: Path, intro: Path | None) -> Path:
         if summary is not None:
             summaries[name] = (label, summary)
     head = headline(summaries) + scene_type_table(summaries)
+    cross = crossover_summary(docs, link="its section below")
+    if cross:
+        head = [cross, ""] + head
     if head:  # first thing on the page, after the line that says how it was generated
         lines[4:4] = head
+    lines += crossover_section(docs)
     lines += ["## Thesis experiments at CPU scale", ""]
     for name in REPORTS:
         f = docs / "results" / f"{name}.md"

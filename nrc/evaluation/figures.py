@@ -2,7 +2,7 @@
 
 Writes into ``--out`` (default ``docs/images/``):
 
-* ``clouds.png``: path-traced heroes (1536 spp: ~2 % per-pixel noise left) of the three procedural kinds
+* ``clouds.png``: path-traced heroes (1536 spp, not converged: ``figures.json`` records each one's noise floor) of the three procedural kinds
   (``cumulus``, the default scene; ``stratocumulus`` seen from below; ``blobs``, the thesis-era generator) and
   of the 1/16-resolution Disney cloud (CC BY-SA 3.0, Walt Disney Animation Studios, read from
   ``../shared/data/``), all under the default ``sun`` preset's lights. Each hero is a ``pt`` reference (``data/references/``, chunked and
@@ -10,7 +10,7 @@ Writes into ``--out`` (default ``docs/images/``):
 * ``nrc_vs_pt.png`` and ``nrc_vs_pt.json``: the ``--comparison`` scene (``side_lit``, the headline scene type of
   ``docs/results.md``: the Disney cloud side-lit by sun and sky at g 0.5; or ``default``), the path tracer and
   NRC at equal time per frame, each raw and denoised by Intel Open Image Denoise (when ``pyoidn`` is
-  installed; the denoise time is added to both), beside the reference, every panel at the reference's
+  installed; the denoise time is recorded, not added to either side), beside the reference, every panel at the reference's
   exposure. NRC runs ``--frames`` frames from an untrained cache at ``--spp`` spp per frame and shows its last
   frame; the path tracer gets the spp that fit in NRC's median frame time (measured in the same run, with the
   same backend). The JSON holds every number in the titles.

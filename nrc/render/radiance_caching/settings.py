@@ -31,9 +31,9 @@ class TrainingSettings:
     unbiased_max_vertices: int  # ... until this vertex after all (0: never; it runs to max_scatter)
     ring_buffer: int | None  # records kept from earlier frames; None: auto (RING_FRAMES frames of records, capped)
     query_weights: str = "raw"  # cache weights of the training paths' terminal queries: ema | raw
-    paths_per_pixel: float = 1.0  # auto: training paths per pixel that sees the medium
-    min_paths: int = 16384  # auto: the floor
-    max_paths: int = 65536  # auto: the cap
+    paths_per_pixel: float = 3.5  # auto: training paths per pixel that sees the medium
+    min_paths: int = 4096  # auto: the floor
+    max_paths: int = 40960  # auto: the cap
 
     @property
     def auto(self) -> bool:
@@ -104,9 +104,9 @@ class NRCSettings:
                 unbiased_max_vertices=tr.get_int("unbiased_max_vertices", 0, lo=0),
                 ring_buffer=_ring_buffer(tr),
                 query_weights=tr.get_choice("query_weights", ["raw", "ema"], "raw"),
-                paths_per_pixel=tr.get_float("paths_per_pixel", 1.0, lo=0.0, lo_open=True),
-                min_paths=tr.get_int("min_paths", 16384, lo=1),
-                max_paths=tr.get_int("max_paths", 65536, lo=1),
+                paths_per_pixel=tr.get_float("paths_per_pixel", 3.5, lo=0.0, lo_open=True),
+                min_paths=tr.get_int("min_paths", 4096, lo=1),
+                max_paths=tr.get_int("max_paths", 40960, lo=1),
             ),
             inference_batch=inf.get_int("batch_size", 1 << 14, lo=1),
             accumulate=cfg.get_bool("accumulate", False),
