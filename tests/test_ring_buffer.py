@@ -96,6 +96,12 @@ def test_state_round_trip() -> None:
     ring.push(records, valid)
     restored.push(records, valid)
     assert all(torch.equal(x, y) for x, y in zip(restored.stored(), ring.stored()))  # same oldest overwritten
+    # a full, wrapped ring fills invalid records from the same slots after a restore (an exact resume)
+    again = RingBuffer(20)
+    again.load_state_dict(ring.state_dict())
+    records, valid = frame(gen, 16, 0.3)
+    fills = [r.fill(records, valid, torch.Generator().manual_seed(9)) for r in (ring, again)]
+    assert all(torch.equal(x, y) for x, y in zip(*fills))
     with pytest.raises(ConfigError, match="capacity"):
         RingBuffer(10).load_state_dict(ring.state_dict())
     with pytest.raises(ConfigError, match="ring_buffer.capacity"):

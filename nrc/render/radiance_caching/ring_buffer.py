@@ -80,8 +80,9 @@ class RingBuffer:
         return TrainingRecords._unpack(torch.where(valid[:, None], packed, self._data[slots]))
 
     def state_dict(self) -> dict[str, Any]:
-        """The stored records (oldest first) for checkpoints."""
-        return {"capacity": self.capacity, "records": self._data[self._ring_slots()].cpu()}
+        """The stored records in their slots, and the write position, for checkpoints: :meth:`fill` draws slots, so an
+        exact resume needs the layout, not just the records (a full ring's oldest record is not in slot 0)."""
+        return {"capacity": self.capacity, "records": self._data[:self._size].cpu(), "head": self._head}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore from :meth:`state_dict` of a buffer with the same capacity."""
@@ -91,7 +92,7 @@ class RingBuffer:
         self._data.zero_()
         self._data[:records.shape[0]] = records
         self._size = records.shape[0]
-        self._head = self._size % self.capacity
+        self._head = int(state.get("head", self._size % self.capacity))  # older checkpoints: oldest first
 
     def _ring_slots(self) -> Tensor:
         """The occupied slots, oldest record first."""
