@@ -103,23 +103,21 @@ class PathTracerSettings:
     def from_config(cls, renderer: Any) -> PathTracerSettings:
         cfg = ConfigReader(renderer, "renderer")
         cfg.get_choice("name", ["pt"])
-        rr = cfg.block("russian_roulette")
         settings = cls(
             slots=cfg.get_int("slots", lo=1),
             shadow_batch=cfg.get_int("shadow_batch", lo=1),
             brick=cfg.get_raw("brick"),  # 'auto' or an edge, validated by wavefront_majorants
             free_flight=cfg.get_choice("free_flight", ["brick", "global"]),
-            russian_roulette=rr.get_bool("enabled"),
-            rr_start=rr.get_int("start", lo=1),
-            rr_max_survival=rr.get_float("max_survival", lo=0.05, hi=1.0),
+            russian_roulette=(rr := RussianRoulette.from_config(cfg))[0],  # read in key order
+            rr_start=rr[1].start,
+            rr_max_survival=rr[1].max_survival,
             backend=cfg.get_choice("backend", list(BACKENDS)),
             compile_min_samples=cfg.get_int("compile_min_samples", lo=0),
             steps_per_call=cfg.get_int("steps_per_call", lo=1),
             light_sampling=LightSamplingSettings.from_config(cfg),
             reuse=ReuseSettings.from_config(cfg),
         )
-        for block in (rr, cfg):
-            block.finish()
+        cfg.finish()
         return settings
 
 

@@ -15,11 +15,28 @@ per step at a time; the loop runs over steps, never over rays.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor
+
+
+def centre_ray_chords(camera: Any, grid: Any, chunk: int = 1 << 14) -> Iterator[tuple[Tensor, ...]]:
+    """``(pix, o, d, t0, t1)`` per chunk of ``chunk`` pixels: the pixels (flat indices) whose centre ray crosses the
+    grid's box, their rays and the box's entry / exit distances (``t0`` may be negative: the camera inside the
+    box). Chunks without such a pixel are skipped. The one walk over the camera's centre rays that the optical depth
+    and the NRC training budget's medium mask (``training_set.medium_pixel_mask``) share."""
+    dev = grid.device
+    n = camera.num_pixels
+    for start in range(0, n, chunk):
+        pix = torch.arange(start, min(n, start + chunk), device=dev)
+        o, d = camera.generate_rays(pix, torch.full((len(pix), 2), 0.5, device=dev))
+        t0, t1 = grid.box.intersect(o, d)
+        hit = t1 > t0
+        if bool(hit.any()):
+            yield pix[hit], o[hit], d[hit], t0[hit], t1[hit]
 
 
 def camera_optical_depths(camera: Any, grid: Any, steps_per_voxel: float = 2.0, chunk: int = 1 << 14) -> Tensor:
@@ -32,19 +49,14 @@ def camera_optical_depths(camera: Any, grid: Any, steps_per_voxel: float = 2.0, 
     """
     if not steps_per_voxel > 0:
         raise ValueError(f"steps_per_voxel must be > 0, got {steps_per_voxel}")
-    dev = grid.device
-    n = camera.num_pixels
-    out = torch.zeros(n, dtype=torch.float32, device=dev)
+    out = torch.zeros(camera.num_pixels, dtype=torch.float32, device=grid.device)
     dt_max = grid.voxel_size / steps_per_voxel
-    for start in range(0, n, chunk):
-        pix = torch.arange(start, min(n, start + chunk), device=dev)
-        o, d = camera.generate_rays(pix, torch.full((len(pix), 2), 0.5, device=dev))
-        t0, t1 = grid.box.intersect(o, d)
-        t0 = t0.clamp(min=0.0)
-        hit = t1 > t0
-        if not bool(hit.any()):
+    for pix, o, d, t0, t1 in centre_ray_chords(camera, grid, chunk):
+        t0 = t0.clamp(min=0.0)  # from the camera on
+        ahead = t1 > t0
+        if not bool(ahead.any()):
             continue
-        o, d, t0, t1 = o[hit], d[hit], t0[hit], t1[hit]
+        pix, o, d, t0, t1 = pix[ahead], o[ahead], d[ahead], t0[ahead], t1[ahead]
         length = t1 - t0
         steps = max(1, math.ceil(float(length.max()) / dt_max))
         dt = length / steps  # each ray's own step: exactly `steps` midpoints over its chord
@@ -52,7 +64,7 @@ def camera_optical_depths(camera: Any, grid: Any, steps_per_voxel: float = 2.0, 
         for i in range(steps):
             x = o + (t0 + (i + 0.5) * dt)[:, None] * d
             tau += grid.sigma_t(x) * dt
-        out[pix[hit]] = tau
+        out[pix] = tau
     return out
 
 

@@ -348,11 +348,16 @@ class NRCRenderer:
         reference there (of ``output`` without a reference); ``None`` for the first frame. metrics.json's
         ``flicker`` is its mean over the second half of the frames (a static camera: the cache's own change and
         noise; with ``renderer.animate`` it includes the motion)."""
-        m = self.medium_mask
-        if previous is None or not bool(m.any()):
+        from nrc.evaluation.metrics import flicker
+
+        if previous is None or not bool(self.medium_mask.any()):
             return None
-        scale = float(self.reference[m.cpu().numpy()].mean()) if self.reference is not None else float(output[m].mean())
-        return float((output - previous).abs()[m].mean()) / scale if scale > 0 else None
+        pair = torch.stack([previous, output]).cpu().numpy()
+        ref = self.reference if self.reference is not None else pair[1]
+        try:
+            return flicker(pair, ref, self.medium_mask.cpu().numpy())
+        except ValueError:  # black over the medium: no scale to measure against
+            return None
 
     # ------------------------------------------------------------------ the frame loop
     def render(self, progress: bool = False, on_frame: FrameCallback | None = None) -> RenderResult:

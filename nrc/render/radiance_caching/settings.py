@@ -80,9 +80,7 @@ class NRCSettings:
         cfg = ConfigReader(renderer, "renderer")
         cfg.get_choice("name", ["nrc"])
         tr, inf, anim, log = cfg.block("training"), cfg.block("inference"), cfg.block("animate"), cfg.block("log")
-        rr = cfg.block("russian_roulette")
-        roulette = RussianRoulette(rr.get_int("start", 8, lo=1), rr.get_float("max_survival", 1.0, lo=0.05, hi=1.0))
-        roulette = roulette if rr.get_bool("enabled", False) else None
+        enabled, roulette = RussianRoulette.from_config(cfg, defaults=True)
         settings = cls(
             slots=cfg.get_int("slots", 1 << 16, lo=1),
             shadow_batch=cfg.get_int("shadow_batch", 1 << 17, lo=1),
@@ -117,9 +115,9 @@ class NRCSettings:
             **_checkpoint_cadence(cfg),
             reference=cfg.get_optional_str("reference"),
             resume=cfg.get_optional_str("resume"),
-            roulette=roulette,
+            roulette=roulette if enabled else None,
         )
-        for block in (tr, inf, anim, log, rr, cfg):
+        for block in (tr, inf, anim, log, cfg):
             block.finish()
         t = settings.training
         if t.min_paths > t.max_paths:

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from nrc.render.radiance_caching.ring_buffer import TrainingRecords
+from nrc.volume.optical_depth import centre_ray_chords
 
 
 def training_positions(order: Tensor, train_width: int, train_height: int, image_width: int, image_height: int,
@@ -73,22 +74,14 @@ def medium_pixel_mask(camera, grid, samples: int = MEDIUM_SAMPLES, chunk: int = 
     ray's segment inside the grid's box are looked up (a medium thinner than the spacing can be missed; the mask
     sizes a budget and selects pixels for the flicker figure, it is not an estimator). Memory: ``chunk x samples``
     lookups at a time."""
-    n = camera.num_pixels
     dev = grid.device
-    out = torch.zeros(n, dtype=torch.bool, device=dev)
+    out = torch.zeros(camera.num_pixels, dtype=torch.bool, device=dev)
     mid = (torch.arange(samples, device=dev, dtype=torch.float32) + 0.5) / samples
-    for start in range(0, n, chunk):
-        pix = torch.arange(start, min(n, start + chunk), device=dev)
-        o, d = camera.generate_rays(pix, torch.full((len(pix), 2), 0.5, device=dev))
-        t0, t1 = grid.box.intersect(o, d)
-        hit = t1 > t0
-        if not bool(hit.any()):
-            continue
-        o, d, t0, t1 = o[hit], d[hit], t0[hit], t1[hit]
+    for pix, o, d, t0, t1 in centre_ray_chords(camera, grid, chunk):
         t = t0[:, None] + (t1 - t0)[:, None] * mid[None]
         x = o[:, None, :] + t[..., None] * d[:, None, :]
         dens = grid.lookup(x.reshape(-1, 3)).reshape(len(o), samples)
-        out[pix[hit]] = (dens > 0).any(dim=1)
+        out[pix] = (dens > 0).any(dim=1)
     return out.reshape(camera.height, camera.width)
 
 

@@ -66,6 +66,22 @@ class RussianRoulette:
     start: int
     max_survival: float = 1.0
 
+    @classmethod
+    def from_config(cls, renderer: Any, defaults: bool = False) -> tuple[bool, RussianRoulette]:
+        """``(enabled, rule)`` from the ``russian_roulette`` block of a :class:`nrc.config.ConfigReader` of the
+        ``renderer`` block (``defaults``: missing keys take off, vertex 8 and this class's cap; otherwise they are
+        required, their defaults living in the YAML). Unknown keys of the block are errors."""
+        rr = renderer.block("russian_roulette")
+
+        def default(value: Any) -> tuple:
+            return (value,) if defaults else ()
+
+        enabled = rr.get_bool("enabled", *default(False))
+        rule = cls(rr.get_int("start", *default(8), lo=1),
+                   rr.get_float("max_survival", *default(cls.max_survival), lo=0.05, hi=1.0))
+        rr.finish()
+        return enabled, rule
+
 
 @dataclass(frozen=True)
 class NRCRule:
