@@ -52,6 +52,16 @@ class Scene:
     def lights_of(self, kind: type) -> list[Any]:
         return [light for light in self.lights if isinstance(light, kind)]
 
+    def device_for(self, cfg: Mapping[str, Any]) -> torch.device:
+        """The device a renderer runs on: the scene's, which must be the one the root config's ``device`` names
+        (a scene built by ``load_scene(cfg.scene)`` without a device is on the CPU; a renderer given it under
+        ``device=cuda`` would otherwise run silently on the CPU)."""
+        wanted = cfg.get("device") if hasattr(cfg, "get") else None
+        if wanted is not None and torch.device(str(wanted)).type != self.device.type:
+            raise ConfigError(f"device={wanted} but the scene was built on {self.device.type}: build it with "
+                              "load_scene(cfg.scene, cfg.device)")
+        return self.device
+
 
 # ---------------------------------------------------------------------------- value checks
 def _get(node: Mapping[str, Any], key: str, where: str) -> Any:

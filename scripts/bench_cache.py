@@ -69,7 +69,7 @@ def _best_seconds(fn: Callable[[], object], reps: int, warmup: int = 1) -> float
 
 def _inputs(grid: DensityGrid, device: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(0)
-    x = grid.box.lo + grid.box.extent * torch.rand(N_POINTS, 3, generator=g)
+    x = grid.box.lo.cpu() + grid.box.extent.cpu() * torch.rand(N_POINTS, 3, generator=g)  # drawn on the CPU
     d = torch.nn.functional.normalize(torch.randn(N_POINTS, 3, generator=g), dim=1)
     t = torch.rand(N_POINTS, 3, generator=g)
     return x.to(device), d.to(device), t.to(device)

@@ -76,7 +76,7 @@ def run_scene(name: str, args, out: Path) -> dict:
         ims, t = [], []
         for seed in range(args.seeds):
             cfg = compose([*base, *ov, f"scene.integrator.seed={1000 + seed}"])
-            scene = load_scene(cfg.scene)  # not timed: the same cloud for every mode
+            scene = load_scene(cfg.scene, cfg.device)  # not timed: the same cloud for every mode
             t0 = time.perf_counter()
             ims.append(PathTracer(scene, cfg).render().image.mean(-1))
             t.append(time.perf_counter() - t0)

@@ -51,13 +51,13 @@ def main() -> None:
     cfg = compose(["renderer=nrc", *side_lit(args.vdb), f"scene.camera.width={args.width}", f"scene.camera.height={args.height}",
                    f"frames={args.frames}", f"renderer.backend={args.backend}", "renderer.log.tensorboard=false",
                    *args.overrides])
-    renderer = NRCRenderer(load_scene(cfg.scene), cfg)
+    renderer = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg)
     result = renderer.render()
     total = time.perf_counter() - t0
     h = result.metrics["history"]
     stages = {k: statistics.median(h[f"time_{k}_s"][args.skip:]) for k in ("trace", "infer", "train", "frame")}
     startup = sum(h.get("time_compile_s", []))
-    out = {"device": str(cfg.device), "backend": result.metrics["backend"], "backend_reason": result.metrics["backend_reason"],
+    out = {"device": str(renderer.device), "backend": result.metrics["backend"], "backend_reason": result.metrics["backend_reason"],
            "threads": args.threads, "size": [args.width, args.height], "frames": args.frames,
            "median_s": stages, "startup_s": startup, "process_s": total,
            "image_mean": float(result.image.mean())}

@@ -74,10 +74,10 @@ def main() -> None:
     # Warm-up on a tiny image (first-call costs, allocator), then the timed render.
     warm = config(args, 1, 16, 9)
     t_warm = time.perf_counter()
-    warm_metrics = PathTracer(load_scene(warm.scene), warm).render().metrics
+    warm_metrics = PathTracer(load_scene(warm.scene, warm.device), warm).render().metrics
     t_warm = time.perf_counter() - t_warm
     cfg = config(args, args.spp, args.width, args.height)
-    scene = load_scene(cfg.scene)
+    scene = load_scene(cfg.scene, cfg.device)
     t0 = time.perf_counter()
     pt = PathTracer(scene, cfg)
     times, result = [], None

@@ -65,7 +65,7 @@ COMMON = ["renderer=pt", "renderer.backend=eager", "renderer.light_selection=ris
 
 def render(overrides: list[str], on_pass=None):
     cfg = compose(overrides)
-    scene = load_scene(cfg.scene)
+    scene = load_scene(cfg.scene, cfg.device)
     t0 = time.perf_counter()
     res = PathTracer(scene, cfg).render(on_pass=on_pass)
     return res, time.perf_counter() - t0, scene
@@ -104,7 +104,7 @@ def bench_scene(name: str, args, log) -> dict:
     base = [*PRESETS[name], *COMMON, *args.extra]
     ref = reference(name, base, args, log)
     cfg = compose(base)
-    mask = medium_mask(medium_alpha(load_scene(cfg.scene)))
+    mask = medium_mask(medium_alpha(load_scene(cfg.scene, cfg.device)))
     out: dict = {"scene": name, "overrides": base, "modes": {}}
     for mode in MODES:
         frames, times = [], []
@@ -182,14 +182,14 @@ def bench_nrc(name: str, args, log) -> dict:
     base = nrc_overrides(name, args)
     ref = np.load(args.out / f"ref_{name}_{args.ref_spp}.npy")
     cfg = compose(base)
-    mask = medium_mask(medium_alpha(load_scene(cfg.scene)))
+    mask = medium_mask(medium_alpha(load_scene(cfg.scene, cfg.device)))
     shared = str(REPO.parent / "shared")  # recorded as ../shared (relative to the repo), not this machine's path
     out: dict = {"scene": name, "renderer": "nrc", "overrides": [o.replace(shared, "../shared") for o in base],
                  "variants": {m: NRC_VARIANTS[m] for m in args.nrc_variants.split(",")}, "modes": {}}
     for mode in args.nrc_variants.split(","):
         cfg = compose([*base, *NRC_VARIANTS[mode]])
         frames = []
-        res = NRCRenderer(load_scene(cfg.scene), cfg).render(on_frame=lambda f, img, o, st: frames.append(img))
+        res = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg).render(on_frame=lambda f, img, o, st: frames.append(img))
         kept = np.stack(frames[args.nrc_warmup:])
         row = mean_score(kept, ref, mask)
         row["rel_var_frames"] = float((kept.var(0, ddof=1) / (kept.mean(0) ** 2 + 0.01))[mask].mean())
@@ -227,7 +227,7 @@ def decompose_scene(spec: str, args, log) -> dict:
     passes = args.frames
     cfg = compose([*PRESETS[name], *COMMON, *args.extra, *extra, "renderer.reuse.mode=spatial",
                    f"scene.integrator.spp={passes}", "scene.integrator.seed=1"])
-    scene = load_scene(cfg.scene)
+    scene = load_scene(cfg.scene, cfg.device)
     pt = PathTracer(scene, cfg)
     mask = medium_mask(medium_alpha(scene)).reshape(-1)
     cam, n, st = scene.camera, scene.camera.num_pixels, pt.settings
@@ -329,7 +329,7 @@ def decompose_nrc(name: str, args, log) -> dict:
     pt_base = [*PRESETS[name], *COMMON, *args.extra]
     ref = reference(name, pt_base, args, log)
     cfg = compose(nrc_overrides(name, args, defaults=["renderer.reuse.mode=spatiotemporal"]))
-    scene = load_scene(cfg.scene)
+    scene = load_scene(cfg.scene, cfg.device)
     mask = medium_mask(medium_alpha(scene))
     r = NRCRenderer(scene, cfg)
     rec = r.reuse = _RecordingReuse(r.reuse, r.device)
@@ -403,7 +403,7 @@ def oracle_nrc(spec: str, args, log) -> dict:
     runs = {}
     for variant in ("none", ORACLE_REUSE):
         cfg = compose([*base, *NRC_VARIANTS[variant]])
-        r = NRCRenderer(load_scene(cfg.scene), cfg)
+        r = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg)
         rec = r.reuse = _RecordingReuse(r.reuse, r.device) if r.reuse is not None else None
         images: list[np.ndarray] = []
         res = r.render(on_frame=lambda f, img, o, st: images.append(np.asarray(img).reshape(-1, 3).copy()))

@@ -53,13 +53,13 @@ def main(argv: list[str] | None = None) -> int:
             cfg = compose(["renderer=pt", "renderer.backend=compiled", *overrides, *ovs,
                            f"scene.integrator.spp={args.spp}", f"scene.integrator.seed={100 + seed}"])
             absolute_paths(cfg)
-            r = PathTracer(load_scene(cfg.scene), cfg).render()
+            r = PathTracer(load_scene(cfg.scene, cfg.device), cfg).render()
             imgs.append(r.image.astype(np.float64))
             times.append(r.metrics["time_render_s"])
             scat.append(r.metrics["scatter_events"] / r.metrics["samples"])
         if ref is None:  # the 'off' renders' mean stands in for the reference (runs first)
             ref = type("Ref", (), {"image": np.mean(imgs, axis=0)})()
-            scene = load_scene(cfg.scene)
+            scene = load_scene(cfg.scene, cfg.device)
             mask = (camera_optical_depths(scene.camera, scene.grid) > 0).reshape(
                 scene.camera.height, scene.camera.width).numpy()
         renders[name] = imgs

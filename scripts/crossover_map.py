@@ -44,7 +44,7 @@ def optical_depth(overrides: list[str]) -> dict:
 
     cfg = compose(overrides)
     absolute_paths(cfg)
-    scene = load_scene(cfg.scene)
+    scene = load_scene(cfg.scene, cfg.device)
     od = scene_optical_depth(scene)
     return {"tau_median": od.median, "tau_reduced_median": od.median_reduced, "albedo": scene.albedo,
             "density_scale": float(cfg.scene.volume.density_scale)}

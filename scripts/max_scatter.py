@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     for limit in limits:
         cfg = compose(["renderer=pt", "renderer.backend=compiled", *overrides, f"scene.integrator.max_scatter={limit}"])
         absolute_paths(cfg)
-        scene = load_scene(cfg.scene)
+        scene = load_scene(cfg.scene, cfg.device)
         if mask is None:
             tau = camera_optical_depths(scene.camera, scene.grid).reshape(scene.camera.height, scene.camera.width)
             mask = tau.numpy() > 0

@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> dict:
                          "mean_ratio_medium": mean_ratio(img, ref.image, mask)})
             print(name, json.dumps(rows[-1]), flush=True)
 
-        NRCRenderer(load_scene(cfg.scene), cfg).render(progress=False, on_frame=on_frame)
+        NRCRenderer(load_scene(cfg.scene, cfg.device), cfg).render(progress=False, on_frame=on_frame)
         out[name] = rows
     if args.out is not None:
         args.out.write_text(json.dumps({"preset": args.preset, "scene": scene, "variants": args.variant,

@@ -25,7 +25,7 @@ from nrc.volume.optical_depth import scene_optical_depth
 def row(name: str, overrides: list[str]) -> str:
     cfg = compose(overrides)
     absolute_paths(cfg)
-    scene = load_scene(cfg.scene)
+    scene = load_scene(cfg.scene, cfg.device)
     od = scene_optical_depth(scene)
     v = cfg.scene.volume
     src = "Disney" if v.source == "vdb" else v.procedural.kind if v.source == "procedural" else v.source

@@ -95,7 +95,7 @@ def _pt_images(overrides: list[str], device: str, backend: str, seeds: range) ->
     for seed in seeds:
         cfg = compose(["renderer=pt", *TINY, *overrides, f"device={device}", f"renderer.backend={backend}",
                        f"scene.integrator.seed={seed}"])
-        result = PathTracer(load_scene(cfg.scene), cfg).render()
+        result = PathTracer(load_scene(cfg.scene, cfg.device), cfg).render()
         assert result.metrics["backend"] == backend, result.metrics["backend_reason"]
         images.append(result.image)
     return images
@@ -129,7 +129,7 @@ def test_short_nrc_run_on_cuda():
 
     cfg = compose(["renderer=nrc", *TINY, "scene=sun_sky", "device=cuda", "frames=10", "renderer.backend=eager",
                    "renderer.training.width=32", "renderer.training.height=32", "renderer.log.tensorboard=false"])
-    renderer = NRCRenderer(load_scene(cfg.scene), cfg)
+    renderer = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg)
     assert next(renderer.cache.network.parameters()).is_cuda
     result = renderer.render()
     losses = [v for v in result.metrics["history"]["loss"] if v is not None]

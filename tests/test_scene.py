@@ -116,6 +116,18 @@ def test_corrupt_npz_is_a_config_error(tmp_path):
         load_scene(cfg.scene)
 
 
+@pytest.mark.parametrize("renderer", ["pt", "nrc"])
+def test_a_renderer_refuses_a_scene_on_another_device(renderer):
+    """``device=cuda`` with a scene built on the CPU (``load_scene(cfg.scene)`` without a device) is one error
+    naming both, not a silent CPU run (needs no GPU: the check compares device types)."""
+    from nrc.render.registry import make_renderer
+
+    cfg = compose([f"renderer={renderer}", "device=cuda", "scene.volume.procedural.resolution=16",
+                   "scene.camera.width=4", "scene.camera.height=4"])
+    with pytest.raises(ConfigError, match="device=cuda but the scene was built on cpu"):
+        make_renderer(renderer, load_scene(cfg.scene), cfg)
+
+
 def test_environment_needs_radiance_or_path():
     cfg = compose(["scene=sky", *SMALL, "scene.lights.0.radiance=null"])
     with pytest.raises(ConfigError, match=r"scene.lights\[0\]"):

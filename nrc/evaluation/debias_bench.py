@@ -111,7 +111,7 @@ def blocks(presets: dict[str, list[str]], qs: list[Any], runs: int, frames: int,
     for name, overrides in presets.items():
         base = [*overrides, *extra]
         cfg = compose(["renderer=pt", *base])
-        scene = load_scene(cfg.scene)
+        scene = load_scene(cfg.scene, cfg.device)
         t0 = time.perf_counter()
         theirs = [render_mitsuba(scene, spp=mitsuba_spp, seed=REF_SEED + s)[0] for s in range(runs)]
         t_mts = time.perf_counter() - t0
@@ -124,7 +124,7 @@ def blocks(presets: dict[str, list[str]], qs: list[Any], runs: int, frames: int,
             else:
                 ncfg = compose(["renderer=nrc", *base, f"renderer.debias.probability={q}",
                                 "renderer.log.tensorboard=false", "renderer.checkpoint_every=0"])
-                ours = [nrc_frames(ncfg, load_scene(ncfg.scene), frames, SEED_BASE + r, accumulate=True)[2]
+                ours = [nrc_frames(ncfg, load_scene(ncfg.scene, ncfg.device), frames, SEED_BASE + r, accumulate=True)[2]
                         for r in range(runs)]
             if save is not None:  # the renders, for other statistics later
                 save.mkdir(parents=True, exist_ok=True)
@@ -193,7 +193,7 @@ def moving(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], 
     scored = range(warmup, warmup + frames)
     cams = [frame_camera(scene0, ncfg0, f) for f in scored]
     pcfg = compose(["renderer=pt", *preset, "renderer.backend=compiled"])
-    pscene = load_scene(pcfg.scene)
+    pscene = load_scene(pcfg.scene, pcfg.device)
     h = scene_hash(pcfg)[:12]
     refs, masks = [], []
     for f, cam in zip(scored, cams):
@@ -219,7 +219,7 @@ def moving(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], 
                        "renderer.checkpoint_every=0"])
         ims, ts = [], []
         for rep in range(repeats):
-            im, t, _, _ = nrc_frames(cfg, load_scene(cfg.scene), warmup + frames, SEED_BASE + 7919 * rep, keep=scored)
+            im, t, _, _ = nrc_frames(cfg, load_scene(cfg.scene, cfg.device), warmup + frames, SEED_BASE + 7919 * rep, keep=scored)
             ims += im
             ts += t
         row = {"config": name, "spp": int(cfg.scene.integrator.spp), "time_s": float(np.median(ts)),

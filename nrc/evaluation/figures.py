@@ -142,7 +142,7 @@ class _PathTracers:
 
         self.cfg = _cfg(["renderer=pt", *(scene or []), f"scene.camera.width={args.width}",
                          f"scene.camera.height={args.height}", f"renderer.backend={args.backend}"])
-        self.scene = load_scene(self.cfg.scene)
+        self.scene = load_scene(self.cfg.scene, self.cfg.device)
 
     def __call__(self, spp: int, seed: int, lights: tuple | None = None):
         from nrc.render.pt import PathTracer
@@ -187,7 +187,7 @@ def comparison(args: argparse.Namespace, log: dict[str, Any]) -> tuple[float, in
         last["image"] = np.asarray(image, np.float32)
 
     t0 = time.perf_counter()
-    NRCRenderer(load_scene(nrc_cfg.scene), nrc_cfg).render(progress=True, on_frame=on_frame)
+    NRCRenderer(load_scene(nrc_cfg.scene, nrc_cfg.device), nrc_cfg).render(progress=True, on_frame=on_frame)
     nrc_total = time.perf_counter() - t0
     nrc_frame = float(np.median(frame_times[len(frame_times) // 2:]))
 
@@ -283,7 +283,7 @@ def animation(args: argparse.Namespace, exposure: float, spp: int, log: dict[str
     degrees = 360.0 / args.anim_frames
     cfg = _nrc_cfg(args, args.anim_warmup + args.anim_frames, ["renderer.animate.mode=sun",
                                                                f"renderer.animate.degrees_per_frame={degrees}"])
-    renderer = NRCRenderer(load_scene(cfg.scene), cfg)
+    renderer = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg)
     tracers = _PathTracers(args)
     frames: list[np.ndarray] = []
     times: dict[str, list[float]] = {"pt": [], "nrc": []}

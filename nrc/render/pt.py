@@ -134,7 +134,7 @@ class PathTracer:
     def __init__(self, scene: Scene, cfg: DictConfig) -> None:
         self.settings = st = PathTracerSettings.from_config(cfg.renderer)
         self.scene = scene
-        self.device = scene.device
+        self.device = scene.device_for(cfg)
         self.slots, self.shadow_batch = st.slots, st.shadow_batch
         self.free_flight, self.backend, self.steps_per_call = st.free_flight, st.backend, st.steps_per_call
         self.transmittance = make_transmittance(cfg.get("transmittance"))

@@ -550,6 +550,9 @@ class LightTable:
             k = (u[0] * n).long().clamp(max=n - 1)
         else:
             k = torch.zeros_like(x[0], dtype=torch.long)
+        # 1 / (the choice's probability); a local, not a conditionally bound name read in a generator (torch 2.11's
+        # Dynamo cannot read a closure cell that one branch leaves unset)
+        scale = inv if power else n
         wi: tuple = (zero, zero + 1.0, zero)
         dist = torch.full_like(zero, math.inf)
         weight: tuple = (zero, zero, zero)
@@ -581,8 +584,8 @@ class LightTable:
             is_env = m
             env, pdf = values[pos:pos + 3], values[pos + 3]
             light_pdf = torch.where(is_env, zero + pdf, zero)
-            weight = tuple(torch.where(is_env, e / pdf + zero, w * (inv if power else n)) for e, w in zip(env, weight))
+            weight = tuple(torch.where(is_env, e / pdf + zero, w * scale) for e, w in zip(env, weight))
         else:
             light_pdf = zero
-            weight = tuple(w * (inv if power else n) for w in weight)
+            weight = tuple(w * scale for w in weight)
         return wi, dist, weight, light_pdf, is_env

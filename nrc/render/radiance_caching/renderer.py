@@ -141,7 +141,7 @@ class NRCRenderer:
 
     def __init__(self, scene: Scene, cfg: DictConfig, cache: Any = None) -> None:
         self.scene = scene
-        self.device = scene.device
+        self.device = scene.device_for(cfg)
         self.settings = st = NRCSettings.from_config(cfg.renderer)
         self.frames = app_checks(cfg, own_cache=cache is None)
         self.display = DisplaySettings.from_config(cfg)
