@@ -32,6 +32,14 @@ ENV_RGB = [0.5, 1.0, 2.0]
 CENTER = (0.3, -0.2, 0.1)
 
 
+@pytest.fixture(autouse=True)
+def _variant():
+    """Every test here starts in ``VARIANT`` (a process-wide setting: under xdist a test may follow one that
+    switched Mitsuba to another variant, or come first in its worker)."""
+    if mi.variant() != VARIANT:
+        mi.set_variant(VARIANT)
+
+
 def _t(v) -> torch.Tensor:
     return torch.tensor(v, dtype=torch.float32)
 

@@ -177,19 +177,18 @@ def test_zero_indirect_cache_with_ris_and_equiangular_is_a_path_tracer(backend):
 def test_compiled_nrc_matches_the_eager_nrc_and_the_oracle(fresh_machines):
     """A real compile of the NRC step (cold cache): the oracle-cache NRC image on ``backend=compiled`` agrees
     with the path tracer, and a second scene (other albedo, g, density scale, sun) reuses the compiled graph."""
-    from torch._dynamo.utils import counters
+    from nrc.render.wavefront.machine import compiled_graphs
 
-    counters.clear()
     pt = render_images(ORACLE, SEEDS, "pt", backend="eager")
     nrc = render_images([*ORACLE, *FULL, "renderer.termination.min_vertices=2", "renderer.termination.p_continue=0.5"],
                         SEEDS, "nrc", sun_oracle, backend="compiled")
     assert_images_agree(nrc, pt)
-    graphs = counters["stats"]["unique_graphs"]
+    graphs = compiled_graphs()  # Dynamo graphs and AOT packages built
     other = [*ORACLE, "scene.volume.albedo=0.9", "scene.volume.g=0.2", "scene.volume.density_scale=0.7",
              "scene.lights.0.direction=[0.2,-1,0.4]", *FULL, "renderer.termination.min_vertices=2",
              "renderer.termination.p_continue=0.5"]
     render_images(other, 2, "nrc", sun_oracle, backend="compiled")
-    assert counters["stats"]["unique_graphs"] == graphs
+    assert compiled_graphs() == graphs
 
 
 class ConstantRandom(RandomSource):

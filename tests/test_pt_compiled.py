@@ -266,6 +266,22 @@ def test_state_machine_matches_mitsuba(preset, single_thread):
 
 
 
+def test_the_step_imports_only_what_its_aot_key_hashes():
+    """The AOT packages are keyed by the sources of ``STEP_SOURCES``: the step's code may reach no other part of
+    nrc (besides errors and file I/O, which the traced step never calls), or an edit there would leave a stale
+    package in use."""
+    import subprocess
+    import sys
+
+    from nrc.render.wavefront.machine import STEP_SOURCES
+
+    code = "import sys, nrc.render.wavefront.step; print(' '.join(m for m in sys.modules if m.startswith('nrc.')))"
+    mods = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    allowed = tuple("nrc." + d.replace("/", ".") for d in STEP_SOURCES) + ("nrc.errors", "nrc.io")
+    stray = [m for m in mods if m != "nrc.render" and not any(m == a or m.startswith(a + ".") for a in allowed)]
+    assert "nrc.render.wavefront.step" in mods and not stray, stray
+
+
 def test_one_machine_serves_every_scene_of_a_structure():
     """Tracers of other scenes (another grid, g, albedo, density scale, light, camera, spp, seed) share one machine:
     their numbers are step inputs. Another light structure or estimator gets its own."""
@@ -286,18 +302,18 @@ def test_one_machine_serves_every_scene_of_a_structure():
 @pytest.mark.slow
 def test_compiled_step_renders_a_second_scene_without_recompiling(fresh_machines):
     """A real compile (cold cache): the first scene compiles the step once; a second scene with another grid
-    shape, density scale, g, albedo, light direction and camera recompiles nothing (Dynamo's counters), and
-    the compiled images agree with the eager backend within Monte Carlo error."""
-    from torch._dynamo.utils import counters
-
+    shape, density scale, g, albedo, light direction and camera recompiles nothing (Dynamo's graphs and the AOT
+    packages built, ``compiled_graphs``), and the compiled images agree with the eager backend within Monte Carlo
+    error."""
     from conftest import assert_images_agree
+    from nrc.render.wavefront.machine import compiled_graphs
 
-    counters.clear()
+    before = compiled_graphs()
     base = ["scene.camera.width=8", "scene.camera.height=4", "scene.integrator.spp=64", "scene.integrator.max_scatter=8"]
     first = make(base + ["renderer.backend=compiled"])[0].render()
     assert first.metrics["backend"] == "compiled", first.metrics["backend_reason"]
-    frames_first = counters["stats"]["unique_graphs"]
-    assert frames_first >= 1
+    frames_first = compiled_graphs()
+    assert frames_first >= before + 1
     second_cfg = base + ["scene.volume.procedural.resolution=20", "scene.volume.density_scale=2.5",
                          "scene.volume.g=0.3", "scene.volume.albedo=0.7", "scene.lights.0.direction=[0.3,-1,-0.2]",
                          "scene.camera.position=[10,0,120]"]
@@ -306,5 +322,67 @@ def test_compiled_step_renders_a_second_scene_without_recompiling(fresh_machines
         images[backend] = [make(second_cfg + [f"renderer.backend={backend}", f"scene.integrator.seed={s}"])[0]
                            .render() for s in range(4)]
     assert all(r.metrics["backend"] == "compiled" for r in images["compiled"])
-    assert counters["stats"]["unique_graphs"] == frames_first  # nothing recompiled for the second scene
+    assert compiled_graphs() == frames_first  # nothing recompiled for the second scene
     assert_images_agree([r.image for r in images["compiled"]], [r.image for r in images["eager"]], block=4)
+    # on the CPU the step is two AOT packages: a new process (no machines) loads them; a corrupt one is rebuilt
+    from nrc.render.wavefront import machine as wm
+
+    pt = make(second_cfg + ["renderer.backend=compiled"])[0]
+    paths = wm.aot_packages(pt.core.step, pt.core.steps_per_call, pt.device)
+    assert paths is not None and all(p.is_file() for p in paths)
+    wm._machines.clear()
+    again = make(second_cfg + ["renderer.backend=compiled", "scene.integrator.seed=0"])[0].render()
+    assert again.metrics["compile_cache_hit"] and compiled_graphs() == frames_first
+    np.testing.assert_array_equal(again.image, images["compiled"][0].image)  # same kernels, same seed
+    paths[1].write_bytes(b"not a package")
+    wm._machines.clear()
+    with caplog_warnings() as records:
+        rebuilt = make(second_cfg + ["renderer.backend=compiled", "scene.integrator.seed=0"])[0].render()
+    assert any("cannot be loaded" in r for r in records)
+    assert rebuilt.metrics["backend"] == "compiled" and compiled_graphs() == frames_first + 1
+    np.testing.assert_array_equal(rebuilt.image, images["compiled"][0].image)
+
+
+class caplog_warnings:
+    """The warning lines the ``nrc`` loggers emit inside the block."""
+
+    def __enter__(self) -> list[str]:
+        import logging
+
+        self.records: list[str] = []
+        self.handler = logging.Handler(logging.WARNING)
+        self.handler.emit = lambda record: self.records.append(record.getMessage())
+        logging.getLogger("nrc").addHandler(self.handler)
+        return self.records
+
+    def __exit__(self, *exc) -> None:
+        import logging
+
+        logging.getLogger("nrc").removeHandler(self.handler)
+
+
+def test_auto_loads_cached_packages_for_any_render(tmp_path, monkeypatch):
+    """With the step's AOT packages in the cache (a load of milliseconds) ``auto`` compiles even a tiny render;
+    the packages are keyed by the thread count and the structure, not by the scene's numbers."""
+    from nrc.render.wavefront import machine as wm
+
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(wm, "_machines", [])
+    pt, _ = make(["scene.camera.width=4", "scene.camera.height=2", "renderer.backend=auto",
+                  "renderer.compile_min_samples=1000"])
+    paths = wm.aot_packages(pt.core.step, pt.core.steps_per_call, pt.device)
+    assert paths is not None and not wm.packages_cached(pt.core.step, pt.core.steps_per_call, pt.device)
+    assert pt.core.choose(100)[1] == "eager"
+    for p in paths:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.touch()
+    monkeypatch.setattr(wm.Machine, "warm_up", lambda self, inputs, slots: 0.0)  # no real load
+    assert pt.core.choose(100)[1] == "compiled"
+    other, _ = make(["scene.camera.width=4", "scene.camera.height=2", "scene.volume.g=0.1", "renderer.backend=auto"])
+    assert wm.aot_packages(other.core.step, other.core.steps_per_call, other.device) == paths
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads + 1)
+        assert wm.aot_packages(pt.core.step, pt.core.steps_per_call, pt.device) != paths
+    finally:
+        torch.set_num_threads(threads)

@@ -1,22 +1,26 @@
 """Running the transport step eagerly or compiled, once per process and structure (``renderer.backend``).
 
 A :class:`Machine` wraps the two step functions of a :class:`~nrc.render.wavefront.step.Transport`. With
-``compile=True`` each is ``torch.compile``'d with a dynamic slot dimension and dynamic grid / majorant-table
-lengths; the scene's numbers arrive in the ``P`` tensor (:class:`SceneInputs`), so one compiled graph serves
-every scene of the same structure: a sweep over density scale, g, albedo, lights, camera or another VDB file
-compiles once per process, and later processes load the kernels from the persistent inductor cache
-(:func:`inductor_cache_dir`). Machines are kept per process by :func:`machine_for` (keyed by the step's
+``compile=True`` each is compiled with a dynamic slot dimension and dynamic grid / majorant-table lengths; the
+scene's numbers arrive in the ``P`` tensor (:class:`SceneInputs`), so one compiled step serves every scene of the
+same structure: a sweep over density scale, g, albedo, lights, camera or another VDB file compiles once. On the
+CPU the step is compiled ahead of time (``torch.export`` + AOTInductor) into two package files in the persistent
+cache (:func:`aot_packages`), which later processes load in milliseconds without importing Dynamo; elsewhere, or
+where the export fails, it is ``torch.compile``'d and later processes load its kernels from the persistent
+inductor cache (:func:`inductor_cache_dir`) after re-tracing it (seconds). Machines are kept per process by :func:`machine_for` (keyed by the step's
 :attr:`~nrc.render.wavefront.step.Transport.key` and device); a marker file per structure in the cache
 directory tells ``backend=auto`` that a compile would be a cache load (:func:`is_cached`).
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import os
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +28,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from nrc.io.disk_cache import source_hash
 from nrc.render.wavefront.step import Transport
+from nrc.transport.rng import uniforms as counter_uniforms
 
 log = logging.getLogger(__name__)
 HEARTBEAT_S = 20.0  # a compile says it is still going this often
@@ -38,6 +44,12 @@ MIN_SLOTS = 64  # compaction never goes below this (dynamic-shape kernels specia
 TRACK_OPTIONS = {"assert_indirect_indexing": False}
 VERTEX_OPTIONS = {"assert_indirect_indexing": False, "cpp.vec_isa_ok": False}
 RECOMPILE_LIMIT = 64  # structures per process before Dynamo would fall back to eager (default 8)
+# Where the step is compiled ahead of time into a package (torch.export + AOTInductor) that a later process loads
+# in milliseconds without Dynamo (torch.compile re-traces both functions on every start, ~3.4 s, before its cache
+# hits): the CPU, measured (docs/benchmarks.md, "Start-up"). CUDA keeps torch.compile until a GPU run has checked
+# the packages there. A step whose export fails falls back to torch.compile.
+AOT_DEVICES = ("cpu",)
+_aot_built = 0  # AOT packages built by this process (part of compiled_graphs())
 
 
 @dataclass
@@ -85,11 +97,86 @@ def is_cached(step: Transport, device: torch.device) -> bool:
     return _marker(step, device).exists()
 
 
-def compiled_graphs() -> int:
-    """Graphs Dynamo has compiled in this process (a sweep that recompiles nothing keeps this constant)."""
-    from torch._dynamo.utils import counters
+def packages_cached(step: Transport, steps_per_call: int, device: torch.device) -> bool:
+    """Both AOT packages of this structure are in the cache: a compile is a load of milliseconds."""
+    paths = aot_packages(step, steps_per_call, device)
+    return paths is not None and all(p.is_file() for p in paths)
 
-    return int(counters["stats"]["unique_graphs"])
+
+def compiled_graphs() -> int:
+    """Graphs Dynamo has compiled in this process plus the AOT packages it built (a sweep that recompiles nothing
+    keeps this constant; loading a package counts nothing)."""
+    import sys
+
+    dynamo = sys.modules.get("torch._dynamo.utils")  # never imported by a process that only loads AOT packages
+    graphs = int(dynamo.counters["stats"]["unique_graphs"]) if dynamo is not None else 0
+    return graphs + _aot_built
+
+
+# The packages whose code the traced step runs (tests/test_pt_compiled.py checks that the step's imports stay in
+# them): an edit to any of their files makes new AOT packages; a stale package would run the old code unnoticed.
+STEP_SOURCES = ("render/wavefront", "transport", "volume")
+
+
+@functools.lru_cache(maxsize=1)
+def _package_sources() -> str:
+    """A hash of the :data:`STEP_SOURCES` files."""
+    root = Path(__file__).resolve().parents[2]
+    return source_hash([f for d in STEP_SOURCES for f in sorted((root / d).rglob("*.py"))])
+
+
+def aot_packages(step: Transport, steps_per_call: int, device: torch.device) -> tuple[Path, Path] | None:
+    """The ``(track, vertex)`` package files of ``step``'s structure in the compile cache, or None where the step
+    is compiled by torch.compile instead (a device not in :data:`AOT_DEVICES`, a scripted random-number function,
+    a lat-long sampler). Keyed by the structure, ``steps_per_call``, the device type, the torch version, the CPU
+    thread count (the kernels are specialised on it), the Inductor options and the package's sources."""
+    if device.type not in AOT_DEVICES or step.uniforms is not counter_uniforms or step.sampler is not None:
+        return None
+    threads = torch.get_num_threads() if device.type == "cpu" else 0
+    text = repr((step.structure, steps_per_call, device.type, torch.__version__, threads, TRACK_OPTIONS,
+                 VERTEX_OPTIONS, _package_sources()))
+    stem = inductor_cache_dir() / "nrc-aot" / hashlib.sha1(text.encode()).hexdigest()[:20]
+    return stem.with_name(stem.name + "-track.pt2"), stem.with_name(stem.name + "-vertex.pt2")
+
+
+class _Package:
+    """A step function loaded from an AOTInductor package: ``(F, I, P, density, majorant) -> (F, I)``."""
+
+    def __init__(self, path: Path, device: torch.device) -> None:
+        index = -1 if device.type == "cpu" else (device.index if device.index is not None else
+                                                 torch.cuda.current_device())
+        loader_cls = getattr(getattr(torch._C, "_aoti", None), "AOTIModelPackageLoader", None)
+        if loader_cls is not None:  # the C++ loader: imports nothing of Inductor or Dynamo
+            self._loader = loader_cls(str(path), "model", False, 1, index)
+        else:  # pragma: no cover -- another torch's layout
+            from torch._inductor import aoti_load_package
+
+            self._loader = aoti_load_package(str(path))
+
+    def __call__(self, F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> tuple[Tensor, Tensor]:
+        F, I = self._loader.run([F.contiguous(), I.contiguous(), P, density, majorant])
+        return F, I
+
+
+def _build_package(fn: Any, args: tuple[Tensor, ...], options: dict[str, Any], path: Path) -> None:
+    """Export ``fn`` (slot count and grid / table lengths dynamic, as in :func:`_compile`) and compile it into
+    the package ``path`` (written whole, then renamed: a half-written package is never loaded)."""
+    from torch._inductor import aoti_compile_and_package
+    from torch.export import Dim
+
+    class Step(torch.nn.Module):
+        def forward(self, F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> Any:
+            return fn(F, I, P, density, majorant)
+
+    n, nd, nm = Dim("slots", min=2), Dim("density", min=2), Dim("majorant", min=2)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.pt2")
+    with warnings.catch_warnings():  # torch's own deprecation notices from inside export: not the user's concern
+        warnings.simplefilter("ignore", FutureWarning)
+        program = torch.export.export(Step(), args, dynamic_shapes=({1: n}, {1: n}, None, {0: nd}, {0: nm}),
+                                      strict=False)
+        aoti_compile_and_package(program, package_path=str(tmp), inductor_configs=dict(options))
+    os.replace(tmp, path)
 
 
 def _compile(fn: Any, options: dict[str, Any]) -> Any:
@@ -123,14 +210,46 @@ class Machine:
             return F, I
 
         self._track_eager, self._vertex_eager = track, step.vertex
-        if compile:
-            inductor_cache_dir()
-            torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
-            self._track, self._vertex = _compile(track, TRACK_OPTIONS), _compile(step.vertex, VERTEX_OPTIONS)
-        else:
-            self._track, self._vertex = track, step.vertex
+        self._track, self._vertex = track, step.vertex  # compiled: replaced here (JIT) or by warm_up (AOT)
+        # the AOT packages of this structure (loaded or built by warm_up), or None: torch.compile
+        self.packages = aot_packages(step, steps_per_call, device) if compile else None
+        if compile and self.packages is None:
+            self._jit()
         self.startup_s: float | None = None if compile else 0.0
         self.cache_hit: bool | None = None
+
+    def _jit(self) -> None:
+        """The step functions through torch.compile (lazy: the first calls compile or load them)."""
+        inductor_cache_dir()
+        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
+        self._track, self._vertex = _compile(self._track_eager, TRACK_OPTIONS), _compile(self._vertex_eager,
+                                                                                        VERTEX_OPTIONS)
+
+    def _load_packages(self, track_args: tuple[Tensor, ...], vertex_args: tuple[Tensor, ...]) -> None:
+        """The step functions from their AOT packages: loaded, or built first (from the example arguments) when
+        absent or unreadable; torch.compile instead when a step cannot be exported."""
+        global _aot_built
+        loaded = []
+        for path, fn, options, args in zip(self.packages, (self._track_eager, self._vertex_eager),
+                                           (TRACK_OPTIONS, VERTEX_OPTIONS), (track_args, vertex_args)):
+            if path.is_file():
+                try:
+                    loaded.append(_Package(path, self.device))
+                    continue
+                except Exception as exc:  # noqa: BLE001 -- a corrupt or foreign file: build it again
+                    log.warning("the compiled step %s cannot be loaded (%s); compiling it again", path.name,
+                                str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__)
+            try:
+                _build_package(fn, args, options, path)
+            except Exception as exc:  # noqa: BLE001 -- an op export cannot take: the JIT compiles it
+                log.info("ahead-of-time compile of the step failed (%s: %s); using torch.compile", type(exc).__name__,
+                         str(exc).splitlines()[0][:200] if str(exc) else "")
+                self.packages = None
+                self._jit()
+                return
+            _aot_built += 1
+            loaded.append(_Package(path, self.device))
+        self._track, self._vertex = loaded
 
     def track(self, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
         fn = self._track if F.shape[1] >= 2 else self._track_eager
@@ -146,14 +265,16 @@ class Machine:
         if self.startup_s is not None:
             return 0.0
         marker = _marker(self.step, self.device)
-        self.cache_hit = marker.exists()
+        self.cache_hit = marker.exists() if self.packages is None else all(p.is_file() for p in self.packages)
         where = inductor_cache_dir()
         if self.cache_hit:
-            log.info("loading the compiled transport step from %s (a few seconds)", where)
+            log.info("loading the compiled transport step from %s (%s)", where,
+                     "a few seconds" if self.packages is None else "under a second")
         else:
             log.info("compiling the transport step for this light / estimator structure on %s: once, about 1-3 "
                      "minutes on 2 CPU cores; it is kept in %s, so later runs of any scene of this structure load "
-                     "it in seconds (renderer.backend=eager skips the compile)", self.device.type, where)
+                     "it in %s (renderer.backend=eager skips the compile)", self.device.type, where,
+                     "seconds" if self.packages is None else "milliseconds")
         done = threading.Event()
         t0 = time.perf_counter()
 
@@ -166,9 +287,13 @@ class Machine:
         try:
             layout = self.step.layout
             F, I = layout.zeros(max(slots, MIN_SLOTS), self.device)
-            self.track(F, I, inputs)
             k = max(F.shape[1] // 16, 2)
-            self.vertex(F[:, :k].contiguous(), I[:, :k].contiguous(), inputs)
+            Fv, Iv = F[:, :k].contiguous(), I[:, :k].contiguous()
+            if self.packages is not None:
+                scene = (inputs.P, inputs.density, inputs.majorant)
+                self._load_packages((F, I, *scene), (Fv, Iv, *scene))
+            self.track(F, I, inputs)
+            self.vertex(Fv, Iv, inputs)
         finally:
             done.set()
         self.startup_s = time.perf_counter() - t0

@@ -2,8 +2,9 @@
 
 ``renderer.backend`` (``pt`` and ``nrc``): ``eager`` runs the step as plain PyTorch ops; ``compiled`` runs the
 same step ``torch.compile``'d; ``auto`` compiles when this process already holds the compiled step, when the
-persistent cache holds it (a compile is then a cache load of seconds), or when the work is large enough to
-repay a cold compile (``compile_min_samples`` camera samples); otherwise eager. Which backend ran and why is
+persistent cache holds its AOT packages (a load of milliseconds, on the CPU), when it holds torch.compile's kernels
+and the work repays their load of seconds (``warm_fraction`` of ``compile_min_samples``), or when the work is large
+enough to repay a cold compile (``compile_min_samples`` camera samples); otherwise eager. Which backend ran and why is
 in the metrics (``backend``, ``backend_reason``, ``time_compile_s``, ``compile_cache_hit``).
 """
 
@@ -19,7 +20,7 @@ from torch import Tensor
 from nrc.errors import ConfigError
 from nrc.render.wavefront.driver import EquiangularQueue, ShadowQueue
 from nrc.render.wavefront.machine import (Machine, SceneInputs, compiled_machine_ready, is_cached,
-                                          machine_for)
+                                          machine_for, packages_cached)
 from nrc.render.wavefront.state import FLIGHT, Layout
 from nrc.render.wavefront.step import NRCRule, RussianRoulette, Transport, Uniforms
 from nrc.transport.equiangular import EquiangularSampler
@@ -105,7 +106,9 @@ class Core:
         reason = self.unsupported_reason()
         if reason is None and self.backend == "auto" and not compiled_machine_ready(self.step, self.steps_per_call,
                                                                                   self.device):
-            if is_cached(self.step, self.device):
+            if packages_cached(self.step, self.steps_per_call, self.device):
+                pass  # an AOT package loads in milliseconds: always worth it
+            elif is_cached(self.step, self.device):
                 warm_min = int(self.compile_min_samples * self.warm_fraction)
                 if samples < warm_min:
                     reason = (f"{samples} samples < {warm_min} (renderer.compile_min_samples x {self.warm_fraction:.3g}):"
