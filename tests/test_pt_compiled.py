@@ -215,6 +215,7 @@ def test_auto_compiles_when_the_cache_holds_the_step(tmp_path, monkeypatch):
     from nrc.render.wavefront import machine as wm
 
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(wm, "AOT_DEVICES", ())  # torch.compile's marker, as on CUDA (the packages: the next test)
     pt, _ = make(["scene.camera.width=4", "scene.camera.height=2", "renderer.backend=auto",
                   "renderer.compile_min_samples=1000"])
     assert not wm.is_cached(pt.core.step, pt.device)
@@ -372,12 +373,13 @@ def test_auto_loads_cached_packages_for_any_render(tmp_path, monkeypatch):
                   "renderer.compile_min_samples=1000"])
     paths = wm.aot_packages(pt.core.step, pt.core.steps_per_call, pt.device)
     assert paths is not None and not wm.packages_cached(pt.core.step, pt.core.steps_per_call, pt.device)
-    assert pt.core.choose(100)[1] == "eager"
+    wm._marker(pt.core.step, pt.device).touch()  # a torch.compile build's marker is not a package
+    assert not wm.is_cached(pt.core.step, pt.device) and pt.core.choose(100)[1] == "eager"
     for p in paths:
         p.parent.mkdir(parents=True, exist_ok=True)
         p.touch()
     monkeypatch.setattr(wm.Machine, "warm_up", lambda self, inputs, slots: 0.0)  # no real load
-    assert pt.core.choose(100)[1] == "compiled"
+    assert wm.is_cached(pt.core.step, pt.device) and pt.core.choose(100)[1] == "compiled"
     other, _ = make(["scene.camera.width=4", "scene.camera.height=2", "scene.volume.g=0.1", "renderer.backend=auto"])
     assert wm.aot_packages(other.core.step, other.core.steps_per_call, other.device) == paths
     threads = torch.get_num_threads()

@@ -91,9 +91,12 @@ def _marker(step: Transport, device: torch.device) -> Path:
     return inductor_cache_dir() / f"nrc-{hashlib.sha1(text.encode()).hexdigest()[:16]}.compiled"
 
 
-def is_cached(step: Transport, device: torch.device) -> bool:
+def is_cached(step: Transport, device: torch.device, steps_per_call: int = 1) -> bool:
     """A compiled machine of this structure was built before with this cache and, on the CPU, this thread count
-    (a compile is a cache load)."""
+    (a compile is a cache load): its AOT packages where the step has them (:func:`packages_cached`: a marker
+    left by an older build or before an edit of the step's sources does not count), else the marker."""
+    if aot_packages(step, steps_per_call, device) is not None:
+        return packages_cached(step, steps_per_call, device)
     return _marker(step, device).exists()
 
 

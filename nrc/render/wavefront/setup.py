@@ -108,7 +108,7 @@ class Core:
                                                                                   self.device):
             if packages_cached(self.step, self.steps_per_call, self.device):
                 pass  # an AOT package loads in milliseconds: always worth it
-            elif is_cached(self.step, self.device):
+            elif is_cached(self.step, self.device, self.steps_per_call):  # torch.compile's kernels (CUDA)
                 warm_min = int(self.compile_min_samples * self.warm_fraction)
                 if samples < warm_min:
                     reason = (f"{samples} samples < {warm_min} (renderer.compile_min_samples x {self.warm_fraction:.3g}):"
