@@ -28,7 +28,6 @@ from pathlib import Path
 import torch
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
 
 from nrc.cache import build_radiance_cache  # noqa: E402
 from nrc.cache.allocator import retain_freed_memory  # noqa: E402

@@ -33,7 +33,6 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
 
 from nrc.config import code_version, compose  # noqa: E402
 from nrc.render.pt import PathTracer  # noqa: E402

@@ -30,7 +30,6 @@ import torch
 from nrc.config import compose  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
 
 from nrc.render.pt import PathTracer  # noqa: E402
 from nrc.scene import load_scene  # noqa: E402

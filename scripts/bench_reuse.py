@@ -50,10 +50,9 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
 
 from nrc.config import code_version, compose  # noqa: E402
-from nrc.evaluation.metrics import hdr_flip, medium_mask, rel_mse  # noqa: E402
+from nrc.metrics import hdr_flip, medium_mask, rel_mse  # noqa: E402
 from nrc.evaluation.reference import medium_alpha  # noqa: E402
 from nrc.evaluation.speed_vs_error import PRESETS  # noqa: E402
 from nrc.render.pt import PathTracer  # noqa: E402

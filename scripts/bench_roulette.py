@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from nrc.config import absolute_paths, compose
-from nrc.evaluation.metrics import mean_ratio, medium_mask, rel_mse, relative_variance
+from nrc.metrics import mean_ratio, medium_mask, rel_mse, relative_variance
 from nrc.evaluation.reference import read_reference
 from nrc.render.pt import PathTracer
 from nrc.scene import load_scene

@@ -8,10 +8,7 @@ About 15 minutes on 2 cores with the defaults (the converged references are cach
 resume after an interruption). See nrc/evaluation/figures.py for what each figure shows.
 """
 
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from nrc.evaluation.figures import main  # noqa: E402
 

@@ -15,17 +15,15 @@ docs/nrc.md ("Defaults by measurement") shows what it measured.
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from nrc.config import compose  # noqa: E402
 from nrc.denoise import denoise  # noqa: E402
-from nrc.evaluation.metrics import mean_ratio, medium_mask, rel_mse  # noqa: E402
+from nrc.metrics import mean_ratio, medium_mask, rel_mse  # noqa: E402
 from nrc.evaluation.reference import check_independent, read_reference  # noqa: E402
 from nrc.evaluation.speed_vs_error import PRESETS  # noqa: E402
 from nrc.render.radiance_caching import NRCRenderer  # noqa: E402

@@ -25,7 +25,6 @@ from pathlib import Path
 
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
 
 from nrc.config import absolute_paths, compose  # noqa: E402
 from nrc.errors import NRCError  # noqa: E402

@@ -10,12 +10,11 @@ from conftest import REPO
 # lower number = lower layer; a module may import its own layer and the ones below
 LAYERS = {
     "nrc.errors": 0, "nrc.config": 0,
-    "nrc.io": 1, "nrc.volume": 1, "nrc.camera": 1, "nrc.denoise": 1,
+    "nrc.io": 1, "nrc.volume": 1, "nrc.camera": 1, "nrc.denoise": 1, "nrc.metrics": 1,
     "nrc.transport": 2, "nrc.scene": 2,
     "nrc.cache": 3,
     "nrc.render": 4,
     "nrc.evaluation": 5,
-    "nrc.evaluation.metrics": 1,  # pure array functions: the NRC frame loop logs relMSE against a reference
     "nrc.app": 6, "nrc.__main__": 6, "nrc": 6,  # the package root re-exports
 }
 
@@ -57,4 +56,15 @@ def test_imports_only_go_down():
 def test_no_script_imports_another_script():
     scripts = {p.stem for p in (REPO / "scripts").glob("*.py")}
     bad = [f"{p.name} imports {t}" for p in (REPO / "scripts").glob("*.py") for t in imports(p) if t in scripts]
+    assert not bad, bad
+
+
+def test_no_script_edits_sys_path():
+    """Scripts import the installed package (``pip install -e .``), never the checkout through ``sys.path``."""
+    bad = []
+    for p in sorted((REPO / "scripts").glob("*.py")):
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.Attribute) and node.attr == "path" and isinstance(node.value, ast.Name) \
+                    and node.value.id == "sys":
+                bad.append(f"{p.name}:{node.lineno}")
     assert not bad, bad

@@ -70,7 +70,7 @@ def test_experiment_composes_as_a_multirun(name):
 
 
 def test_framings_include_one_without_the_cloud():
-    from nrc.evaluation.metrics import medium_mask
+    from nrc.metrics import medium_mask
     from nrc.evaluation.reference import medium_alpha
     from nrc.scene import load_scene
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from nrc.evaluation.metrics import (
+from nrc.metrics import (
     flicker,
     error_report,
     mean_relative_bias,
@@ -121,7 +121,7 @@ def test_error_report_is_json_and_consistent():
 def test_normalised_rel_mse_does_not_forgive_a_dark_image():
     """A uniformly 35 % too dark image of a dim scene (reference 0.1): plain relMSE is tiny because of its
     +0.01, the normalised one (reference mean luminance 1) is not."""
-    from nrc.evaluation.metrics import mean_ratio, normalised_rel_mse, reference_scale
+    from nrc.metrics import mean_ratio, normalised_rel_mse, reference_scale
 
     ref = np.full((4, 6, 3), 0.1)
     dark = 0.65 * ref
@@ -139,7 +139,7 @@ def test_normalised_rel_mse_does_not_forgive_a_dark_image():
 
 def test_hdr_flip_on_known_pairs():
     pytest.importorskip("flip_evaluator")
-    from nrc.evaluation.metrics import hdr_flip
+    from nrc.metrics import hdr_flip
 
     rng = np.random.default_rng(1)
     ref = rng.uniform(0.2, 1.0, size=(32, 32, 3)).astype(np.float32)

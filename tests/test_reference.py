@@ -8,7 +8,7 @@ import pytest
 from conftest import compose
 from nrc.errors import ConfigError, NRCError
 from nrc.io import read_exr
-from nrc.evaluation.metrics import medium_mask
+from nrc.metrics import medium_mask
 from nrc.render.pt import PathTracer
 from nrc.evaluation.reference import (
     REF_SEED,

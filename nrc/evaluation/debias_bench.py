@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from nrc.config import compose
-from nrc.evaluation.metrics import mean_ratio, medium_mask, rel_mse
+from nrc.metrics import mean_ratio, medium_mask, rel_mse
 from nrc.evaluation.reference import REF_SEED, medium_alpha
 from nrc.evaluation.speed_vs_error import baseline_error, nrc_run, pt_render, pt_warmup
 from nrc.scene import load_scene

@@ -50,7 +50,7 @@ from omegaconf import OmegaConf
 REPO = Path(__file__).resolve().parents[2]  # the checkout (multirun/, docs/, data/references live there)
 
 from nrc.io import read_exr  # noqa: E402
-from nrc.evaluation.metrics import error_report, medium_mask  # noqa: E402
+from nrc.metrics import error_report, medium_mask  # noqa: E402
 from nrc.evaluation.reference import read_reference, scene_hash  # noqa: E402
 
 from nrc.evaluation.speed_vs_error import fmt  # noqa: E402  (one number format for every generated table)

@@ -40,7 +40,7 @@ import torch
 from omegaconf import open_dict
 
 from nrc.config import absolute_paths, compose
-from nrc.evaluation.metrics import medium_mask, rel_mse
+from nrc.metrics import medium_mask, rel_mse
 from nrc.evaluation.reference import (REF_SEED, check_independent, default_reference_path, read_reference,
                                      render_reference)
 from nrc.io.png import auto_exposure, tonemap

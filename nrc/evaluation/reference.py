@@ -10,7 +10,7 @@ then deleted.
 
 The EXR also stores the **medium mask** as its ``A`` channel: ``alpha = 1 - T``, the transmittance ``T``
 of the camera rays through the medium (no scattering; pixel centres, midpoint quadrature with one-voxel
-steps). ``nrc.evaluation.metrics.medium_mask(alpha)`` turns it into the
+steps). ``nrc.metrics.medium_mask(alpha)`` turns it into the
 pixel set "where the reference sees the medium". :func:`read_reference` returns image, alpha and header.
 
 **The reference's own noise.** The checkpoint also accumulates the per-pixel sum of squares of the
@@ -137,7 +137,7 @@ def reference_noise_floor(total: np.ndarray, total_sq: np.ndarray, n: int, alpha
     term = var_chunk / n / (mean**2 + eps)
     med = -1.0
     if alpha is not None:
-        from nrc.evaluation.metrics import medium_mask
+        from nrc.metrics import medium_mask
 
         m = medium_mask(alpha)
         med = float(term[m].mean()) if m.any() else -1.0

@@ -13,7 +13,7 @@ Two modes (``--mode single|accumulate|both``):
   on-line training (not scored), then ``--frames`` frames, each scored on its own (``--nrc-spp`` spp per
   frame). Time = mean wall time of one frame (after an untimed warm-up render for ``pt``); relMSE = mean
   over the frames; bias = mean relative bias of the per-pixel mean over the frames; variance = relative
-  variance across the frames (see ``nrc.evaluation.metrics``). The equal-time ratio of an NRC configuration is its
+  variance across the frames (see ``nrc.metrics``). The equal-time ratio of an NRC configuration is its
   relMSE over the relMSE of the path tracer (the Pareto front of every ``pt`` configuration run, e.g. the
   eager and compiled backends: the best relMSE reachable within a time) interpolated (log-log) at the same time per frame (extrapolated with slope -1,
   relMSE ~ 1/spp, beyond the slowest point; flat, the fastest frame's error, before the fastest point).
@@ -57,7 +57,7 @@ import torch
 REPO = Path(__file__).resolve().parents[2]  # the checkout (data/references, outputs/ and git live there)
 
 from nrc.config import CONF_DIR, code_version, compose, resolve_device  # noqa: E402
-from nrc.evaluation.metrics import (flicker, hdr_flip, mean_ratio, mean_relative_bias, medium_mask, mse,  # noqa: E402
+from nrc.metrics import (flicker, hdr_flip, mean_ratio, mean_relative_bias, medium_mask, mse,  # noqa: E402
                                    normalised_rel_mse, rel_mse, relative_variance)
 from nrc.evaluation.reference import (REF_SEED, check_independent, default_reference_path, read_reference,  # noqa: E402
                                      render_reference)

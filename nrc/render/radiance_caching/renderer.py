@@ -348,7 +348,7 @@ class NRCRenderer:
         reference there (of ``output`` without a reference); ``None`` for the first frame. metrics.json's
         ``flicker`` is its mean over the second half of the frames (a static camera: the cache's own change and
         noise; with ``renderer.animate`` it includes the motion)."""
-        from nrc.evaluation.metrics import flicker
+        from nrc.metrics import flicker
 
         if previous is None or not bool(self.medium_mask.any()):
             return None
@@ -396,7 +396,7 @@ class NRCRenderer:
                 previous = output.clone()
                 out_np = output.cpu().numpy()
                 if self.reference is not None:
-                    from nrc.evaluation.metrics import mse, rel_mse
+                    from nrc.metrics import mse, rel_mse
 
                     stats["rel_mse"] = rel_mse(out_np, self.reference)
                     stats["mse"] = mse(out_np, self.reference)
