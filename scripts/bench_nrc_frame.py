@@ -44,6 +44,8 @@ def main() -> None:
     ap.add_argument("--vdb", type=Path, default=VDB, help="the Disney cloud (default: ../shared/data/)")
     ap.add_argument("overrides", nargs="*", help="config overrides, e.g. device=cuda")
     args = ap.parse_args()
+    if args.frames <= args.skip:
+        ap.error(f"--frames ({args.frames}) must exceed --skip ({args.skip}): the medians are over the frames after it")
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     cfg = compose(["renderer=nrc", *side_lit(args.vdb), f"scene.camera.width={args.width}", f"scene.camera.height={args.height}",

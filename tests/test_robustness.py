@@ -238,3 +238,10 @@ def test_ctrl_c_during_a_compile_stops_within_seconds(tmp_path, renderer):
     assert "interrupted by SIGINT" in err and "Traceback" not in err
     assert "compiled the transport step in" not in err  # it stopped the compile instead of waiting for it
     assert not (tmp_path / "run" / "image.exr").exists()
+
+
+def test_bench_nrc_frame_needs_more_frames_than_it_skips():
+    """``--frames`` not above ``--skip`` would leave no frame to take the median of: one usage line, exit 2."""
+    r = subprocess.run([sys.executable, str(REPO / "scripts" / "bench_nrc_frame.py"), "--frames", "2", "--skip", "2"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "must exceed --skip" in r.stderr and "Traceback" not in r.stderr
