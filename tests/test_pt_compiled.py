@@ -3,6 +3,7 @@ eager backend and Mitsuba 3; its component-form building blocks at their owners 
 ``volume/grid.py``, box exit in ``volume/box.py``, HG sampling in ``transport/phase.py``, the light table in
 ``transport/light_sampling.py``) against the batched forms; one real compile shared by two scenes."""
 
+import logging
 import math
 
 import numpy as np
@@ -301,7 +302,7 @@ def test_one_machine_serves_every_scene_of_a_structure():
 
 
 @pytest.mark.slow
-def test_compiled_step_renders_a_second_scene_without_recompiling(fresh_machines, monkeypatch):
+def test_compiled_step_renders_a_second_scene_without_recompiling(fresh_machines, monkeypatch, caplog):
     """A real compile (cold cache): the first scene compiles the step once; a second scene with another grid
     shape, density scale, g, albedo, light direction and camera recompiles nothing (Dynamo's graphs and the AOT
     packages built, ``compiled_graphs``), and the compiled images agree with the eager backend within Monte Carlo
@@ -340,29 +341,11 @@ def test_compiled_step_renders_a_second_scene_without_recompiling(fresh_machines
     # the rebuild is the build tested above: here it restores the good file instead of compiling again (minutes)
     monkeypatch.setattr(wm, "_build_package", lambda fn, args, options, path: path.write_bytes(good))
     wm._machines.clear()
-    with caplog_warnings() as records:
+    with caplog.at_level(logging.WARNING, logger="nrc"):
         rebuilt = make(second_cfg + ["renderer.backend=compiled", "scene.integrator.seed=0"])[0].render()
-    assert any("cannot be loaded" in r for r in records)
+    assert any("cannot be loaded" in r.getMessage() for r in caplog.records)
     assert rebuilt.metrics["backend"] == "compiled" and compiled_graphs() == frames_first + 1
     np.testing.assert_array_equal(rebuilt.image, images["compiled"][0].image)
-
-
-class caplog_warnings:
-    """The warning lines the ``nrc`` loggers emit inside the block."""
-
-    def __enter__(self) -> list[str]:
-        import logging
-
-        self.records: list[str] = []
-        self.handler = logging.Handler(logging.WARNING)
-        self.handler.emit = lambda record: self.records.append(record.getMessage())
-        logging.getLogger("nrc").addHandler(self.handler)
-        return self.records
-
-    def __exit__(self, *exc) -> None:
-        import logging
-
-        logging.getLogger("nrc").removeHandler(self.handler)
 
 
 def test_auto_loads_cached_packages_for_any_render(tmp_path, monkeypatch):

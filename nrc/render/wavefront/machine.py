@@ -7,9 +7,10 @@ same structure: a sweep over density scale, g, albedo, lights, camera or another
 CPU the step is compiled ahead of time (``torch.export`` + AOTInductor) into two package files in the persistent
 cache (:func:`aot_packages`), which later processes load in milliseconds without importing Dynamo; elsewhere, or
 where the export fails, it is ``torch.compile``'d and later processes load its kernels from the persistent
-inductor cache (:func:`inductor_cache_dir`) after re-tracing it (seconds). Machines are kept per process by :func:`machine_for` (keyed by the step's
-:attr:`~nrc.render.wavefront.step.Transport.key` and device); a marker file per structure in the cache
-directory tells ``backend=auto`` that a compile would be a cache load (:func:`is_cached`).
+inductor cache (:func:`inductor_cache_dir`) after re-tracing it (seconds). Machines are kept per process by
+:func:`machine_for` (keyed by the step's :attr:`~nrc.render.wavefront.step.Transport.key` and device); the
+packages, or for ``torch.compile`` a marker file per structure in the cache directory, tell ``backend=auto`` that
+a compile would be a cache load (:func:`is_cached`).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import functools
 import hashlib
 import logging
 import os
+import sys
 import threading
 import time
 import warnings
@@ -106,11 +108,16 @@ def packages_cached(step: Transport, steps_per_call: int, device: torch.device) 
     return paths is not None and all(p.is_file() for p in paths)
 
 
+def failure_line(exc: BaseException) -> str:
+    """The first line of an exception's message (at most 200 characters; empty when it has none): a compile
+    failure reported in one line."""
+    text = str(exc)
+    return text.splitlines()[0][:200] if text else ""
+
+
 def compiled_graphs() -> int:
     """Graphs Dynamo has compiled in this process plus the AOT packages it built (a sweep that recompiles nothing
     keeps this constant; loading a package counts nothing)."""
-    import sys
-
     dynamo = sys.modules.get("torch._dynamo.utils")  # never imported by a process that only loads AOT packages
     graphs = int(dynamo.counters["stats"]["unique_graphs"]) if dynamo is not None else 0
     return graphs + _aot_built
@@ -241,12 +248,12 @@ class Machine:
                     continue
                 except Exception as exc:  # noqa: BLE001 -- a corrupt or foreign file: build it again
                     log.warning("the compiled step %s cannot be loaded (%s); compiling it again", path.name,
-                                str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__)
+                                failure_line(exc) or type(exc).__name__)
             try:
                 _build_package(fn, args, options, path)
             except Exception as exc:  # noqa: BLE001 -- an op export cannot take: the JIT compiles it
                 log.info("ahead-of-time compile of the step failed (%s: %s); using torch.compile", type(exc).__name__,
-                         str(exc).splitlines()[0][:200] if str(exc) else "")
+                         failure_line(exc))
                 self.packages = None
                 self._jit()
                 return
@@ -267,8 +274,8 @@ class Machine:
         from the sizes it sees first); returns the seconds it took (0 when already done)."""
         if self.startup_s is not None:
             return 0.0
-        marker = _marker(self.step, self.device)
-        self.cache_hit = marker.exists() if self.packages is None else all(p.is_file() for p in self.packages)
+        self.cache_hit = (_marker(self.step, self.device).exists() if self.packages is None
+                          else packages_cached(self.step, self.steps_per_call, self.device))
         where = inductor_cache_dir()
         if self.cache_hit:
             log.info("loading the compiled transport step from %s (%s)", where,
@@ -300,7 +307,8 @@ class Machine:
         finally:
             done.set()
         self.startup_s = time.perf_counter() - t0
-        marker.touch()
+        if self.packages is None:  # torch.compile's kernels (the packages are their own record)
+            _marker(self.step, self.device).touch()
         if not self.cache_hit:
             log.info("compiled the transport step in %.0f s (cached for the next run)", self.startup_s)
         return self.startup_s

@@ -19,8 +19,8 @@ from torch import Tensor
 
 from nrc.errors import ConfigError
 from nrc.render.wavefront.driver import EquiangularQueue, ShadowQueue
-from nrc.render.wavefront.machine import (Machine, SceneInputs, compiled_machine_ready, is_cached,
-                                          machine_for, packages_cached)
+from nrc.render.wavefront.machine import (Machine, SceneInputs, compiled_machine_ready, failure_line,
+                                          is_cached, machine_for, packages_cached)
 from nrc.render.wavefront.state import FLIGHT, Layout
 from nrc.render.wavefront.step import NRCRule, RussianRoulette, Transport, Uniforms
 from nrc.transport.equiangular import EquiangularSampler
@@ -122,8 +122,7 @@ class Core:
                 self.last_startup_s = machine.warm_up(self.inputs, 1 << 16)
                 return machine, "compiled", None
             except Exception as exc:  # no C++ compiler, unsupported op, ...: the eager step still works
-                first = str(exc).splitlines()[0][:200] if str(exc) else ""
-                reason = f"torch.compile failed: {type(exc).__name__}: {first}"
+                reason = f"torch.compile failed: {type(exc).__name__}: {failure_line(exc)}"
         if self.backend == "compiled":
             log.warning("renderer.backend=compiled: falling back to eager: %s", reason)
         return machine_for(self.eager_step, self.steps_per_call, False, self.device), "eager", reason
