@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +24,7 @@ from nrc.volume import DensityGrid, procedural_cloud, read_npz, read_vdb
 from nrc.volume.procedural import KINDS as PROCEDURAL_KINDS
 
 VOLUME_SOURCES = ("procedural", "vdb", "npz")
+ANIMATIONS = ("none", "orbit", "sun")  # renderer.animate.mode
 LIGHT_TYPES = ("directional", "point", "environment")
 
 
@@ -61,6 +62,42 @@ class Scene:
             raise ConfigError(f"device={wanted} but the scene was built on {self.device.type}: build it with "
                               "load_scene(cfg.scene, cfg.device)")
         return self.device
+
+
+# ---------------------------------------------------------------------------- animation
+def rotation_y(degrees: float, device: torch.device) -> torch.Tensor:
+    """``(3, 3)`` rotation about world +y (right-handed) by ``degrees``."""
+    a = math.radians(degrees)
+    c, s = math.cos(a), math.sin(a)
+    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float32, device=device)
+
+
+def animated_scene(scene: Scene, mode: str, degrees_per_frame: float, frame: int) -> Scene:
+    """The scene of ``frame`` of an animation (``renderer.animate``; every renderer and benchmark uses this rule):
+    ``orbit`` turns the camera by ``degrees_per_frame * frame`` about world +y through the medium box's centre;
+    ``sun`` turns every directional light's direction by that angle about world +y (point and environment lights
+    stay); ``none`` and frame 0 return ``scene`` itself."""
+    if mode not in ANIMATIONS:
+        raise ConfigError(f"renderer.animate.mode must be one of {', '.join(ANIMATIONS)}, got {mode!r}")
+    if mode == "none" or frame == 0:
+        return scene
+    degrees = float(degrees_per_frame) * frame
+    if mode == "sun":
+        return replace(scene, lights=turned_suns(scene.lights, degrees))
+    rot, cam, centre = rotation_y(degrees, scene.device), scene.camera, scene.grid.box.center
+    return replace(scene, camera=replace(cam, position=rot @ (cam.position - centre) + centre,
+                                         forward=rot @ cam.forward, right=rot @ cam.right, up=rot @ cam.up))
+
+
+def turned_suns(lights: Sequence[Light], degrees: float) -> tuple[Light, ...]:
+    """``lights`` with every directional light's direction turned by ``degrees`` about world +y (the others
+    as they are): ``animate.mode=sun``."""
+    out = []
+    for lt in lights:
+        if isinstance(lt, DirectionalLight):
+            lt = replace(lt, direction=rotation_y(degrees, lt.direction.device) @ lt.direction)
+        out.append(lt)
+    return tuple(out)
 
 
 # ---------------------------------------------------------------------------- value checks

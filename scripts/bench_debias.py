@@ -14,11 +14,11 @@ from pathlib import Path
 import torch
 
 from nrc.evaluation import debias_bench as db
-from nrc.evaluation.speed_vs_error import PRESETS
+from nrc.evaluation.speed_vs_error import preset
 
 
-def sized(preset: str, width: int, height: int) -> list[str]:
-    keep = [o for o in PRESETS[preset] if not o.startswith(("scene.camera.width=", "scene.camera.height="))]
+def sized(name: str, width: int, height: int) -> list[str]:
+    keep = [o for o in preset(name) if not o.startswith(("scene.camera.width=", "scene.camera.height="))]
     return [*keep, f"scene.camera.width={width}", f"scene.camera.height={height}"]
 
 

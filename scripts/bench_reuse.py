@@ -54,7 +54,7 @@ REPO = Path(__file__).resolve().parent.parent
 from nrc.config import code_version, compose  # noqa: E402
 from nrc.metrics import hdr_flip, medium_mask, rel_mse  # noqa: E402
 from nrc.evaluation.reference import medium_alpha  # noqa: E402
-from nrc.evaluation.speed_vs_error import PRESETS  # noqa: E402
+from nrc.evaluation.speed_vs_error import preset  # noqa: E402
 from nrc.render.pt import PathTracer  # noqa: E402
 from nrc.scene import load_scene  # noqa: E402
 
@@ -94,13 +94,13 @@ def parse_spec(spec: str) -> tuple[str, list[str]]:
 def nrc_overrides(name: str, args, extra=(), defaults=()) -> list[str]:
     """1-spp NRC frames of the scene type's static camera (eager, RIS light selection, no TensorBoard,
     ``--nrc-frames`` frames): ``defaults`` (which ``--extra`` may override), then ``--extra``, then ``extra``."""
-    return [*PRESETS[name], "renderer=nrc", "renderer.backend=eager", "renderer.light_selection=ris",
+    return [*preset(name), "renderer=nrc", "renderer.backend=eager", "renderer.light_selection=ris",
             "renderer.log.tensorboard=false", f"frames={args.nrc_frames}", "scene.integrator.spp=1", *defaults,
             *args.extra, *extra]
 
 
 def bench_scene(name: str, args, log) -> dict:
-    base = [*PRESETS[name], *COMMON, *args.extra]
+    base = [*preset(name), *COMMON, *args.extra]
     ref = reference(name, base, args, log)
     cfg = compose(base)
     mask = medium_mask(medium_alpha(load_scene(cfg.scene, cfg.device)))
@@ -224,7 +224,7 @@ def decompose_scene(spec: str, args, log) -> dict:
 
     name, extra = parse_spec(spec)
     passes = args.frames
-    cfg = compose([*PRESETS[name], *COMMON, *args.extra, *extra, "renderer.reuse.mode=spatial",
+    cfg = compose([*preset(name), *COMMON, *args.extra, *extra, "renderer.reuse.mode=spatial",
                    f"scene.integrator.spp={passes}", "scene.integrator.seed=1"])
     scene = load_scene(cfg.scene, cfg.device)
     pt = PathTracer(scene, cfg)
@@ -325,7 +325,7 @@ def decompose_nrc(name: str, args, log) -> dict:
     the same after OIDN) and by their variance over the frames (which includes the cache's drift)."""
     from nrc.render.radiance_caching import NRCRenderer
 
-    pt_base = [*PRESETS[name], *COMMON, *args.extra]
+    pt_base = [*preset(name), *COMMON, *args.extra]
     ref = reference(name, pt_base, args, log)
     cfg = compose(nrc_overrides(name, args, defaults=["renderer.reuse.mode=spatiotemporal"]))
     scene = load_scene(cfg.scene, cfg.device)
@@ -393,7 +393,7 @@ def oracle_nrc(spec: str, args, log) -> dict:
     # the reference depends on the scene only: the spec's scene.* overrides go into it (and its file name)
     scene_extra = [o for o in extra if o.startswith("scene.")]
     tag = f"{name}_{zlib.crc32(' '.join(scene_extra).encode()):08x}" if scene_extra else name
-    ref = reference(tag, [*PRESETS[name], *COMMON, *args.extra, *scene_extra], args, log)
+    ref = reference(tag, [*preset(name), *COMMON, *args.extra, *scene_extra], args, log)
     base = nrc_overrides(name, args, extra)
     w = args.nrc_warmup
     scene = load_scene(compose(base).scene)

@@ -74,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup", type=int, default=30)
     p.add_argument("--frames", type=int, default=4)
     p.add_argument("--nrc-spp", default="1,4", help="NRC spp per frame (the best at equal time is reported)")
+    p.add_argument("--ref-spp", type=int, default=None,
+                   help="spp of every point's reference (default: each point's own, POINTS); larger images need fewer")
     p.add_argument("--nrc", default="renderer=nrc,renderer.backend=compiled", help="the NRC configuration's overrides")
     args, extra = p.parse_known_args(argv)
     args.out = args.out.resolve()
@@ -82,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for name in args.points.split(","):
         ovs, ref_spp = POINTS[name]
+        ref_spp = args.ref_spp or ref_spp
         scene = ["scene=thick", f"scene.volume.path={VDB}", f"scene.camera.width={args.width}",
                  f"scene.camera.height={args.height}", *ovs, *extra]
         out = args.out / name

@@ -25,7 +25,7 @@ from nrc.config import compose  # noqa: E402
 from nrc.denoise import denoise  # noqa: E402
 from nrc.metrics import mean_ratio, medium_mask, rel_mse  # noqa: E402
 from nrc.evaluation.reference import check_independent, read_reference  # noqa: E402
-from nrc.evaluation.speed_vs_error import PRESETS  # noqa: E402
+from nrc.evaluation.speed_vs_error import PRESETS, preset  # noqa: E402
 from nrc.render.radiance_caching import NRCRenderer  # noqa: E402
 from nrc.scene import load_scene  # noqa: E402
 
@@ -35,7 +35,7 @@ SEED = 1001
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--preset", choices=sorted(PRESETS), required=True)
+    p.add_argument("--preset", choices=PRESETS, required=True)
     p.add_argument("--reference", type=Path, required=True)
     p.add_argument("--frames", type=int, default=150)
     p.add_argument("--variant", action="append", default=[], metavar="NAME=OV1,OV2", required=True)
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> dict:
     out: dict[str, list[dict]] = {}
     for spec in args.variant:
         name, _, ovs = spec.partition("=")
-        cfg = compose(PRESETS[args.preset] + scene + ["renderer=nrc", "renderer.log.tensorboard=false",
+        cfg = compose(preset(args.preset) + scene + ["renderer=nrc", "renderer.log.tensorboard=false",
                                                        "renderer.backend=compiled", f"frames={args.frames}",
                                                        f"scene.integrator.seed={SEED}"]
                       + [o for o in ovs.split(",") if o])

@@ -13,11 +13,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from nrc.config import CONF_DIR, absolute_paths, compose
+from nrc.config import absolute_paths, compose
 from nrc.errors import NRCError
-from nrc.evaluation.speed_vs_error import PRESETS
+from nrc.evaluation.speed_vs_error import PRESETS, preset
 from nrc.scene import load_scene
 from nrc.volume.optical_depth import scene_optical_depth
 
@@ -35,15 +34,14 @@ def row(name: str, overrides: list[str]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--type", action="append", default=[], choices=sorted(PRESETS), help="speed-vs-error scene type")
+    p.add_argument("--type", action="append", default=[], choices=PRESETS, help="scene type (conf/scene/)")
     args, overrides = p.parse_known_args(argv)
     if overrides:
         jobs = [(" ".join(overrides), overrides)]
     elif args.type:
-        jobs = [(t, PRESETS[t]) for t in args.type]
+        jobs = [(f"scene={t}", preset(t)) for t in args.type]
     else:
-        presets = sorted(f.stem for f in (Path(CONF_DIR) / "scene").glob("*.yaml") if f.stem != "base")
-        jobs = [(f"scene={s}", [f"scene={s}"]) for s in presets] + [(t, o) for t, o in PRESETS.items() if o]
+        jobs = [(f"scene={t}", preset(t)) for t in PRESETS if t != "none"]
     print("| scene | cloud | density scale | median tau | tau p10-p90 | median tau(1-g) | albedo | g | pixels seeing it |")
     print("|---|---|---|---|---|---|---|---|---|")
     try:

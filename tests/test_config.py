@@ -47,3 +47,18 @@ def test_errors_are_hydras(overrides):
 def test_the_hydra_node_goes_through_hydra():
     cfg = compose(["hydra.run.dir=somewhere"], return_hydra_config=True)
     assert cfg.hydra.run.dir == "somewhere"
+
+
+def test_transport_keys_shared_by_pt_and_nrc_live_in_one_file():
+    """renderer=pt and renderer=nrc include conf/renderer/shared/wavefront.yaml: neither repeats one of its keys
+    (one home for each default), and both compose them at the same paths."""
+    from omegaconf import OmegaConf
+
+    from conftest import CONF_DIR, compose
+
+    shared = OmegaConf.load(CONF_DIR / "renderer" / "shared" / "wavefront.yaml")
+    for name in ("pt", "nrc"):
+        own = OmegaConf.load(CONF_DIR / "renderer" / f"{name}.yaml")
+        assert not set(own) & set(shared), f"{name}.yaml repeats {set(own) & set(shared)}"
+        composed = compose([f"renderer={name}"]).renderer
+        assert {k: composed[k] for k in shared} == dict(shared) and composed.name == name

@@ -552,3 +552,26 @@ def test_flicker_in_metrics_and_lower_when_frames_accumulate():
     assert h[0] is None and all(x > 0 for x in h[1:])
     assert each.metrics["flicker"] == pytest.approx(np.mean(h[3:]))
     assert acc.metrics["flicker"] < 0.6 * each.metrics["flicker"]
+
+
+def test_auto_unbiased_fraction_follows_the_optical_depth():
+    """training.unbiased_fraction=auto: half the training paths run to the end in a thick cloud (median optical
+    depth over the camera rays >= 40), a quarter in a moderate one; a fixed number stays as given; other words
+    are config errors naming the key."""
+    from nrc.render.radiance_caching.settings import NRCSettings, auto_unbiased_fraction
+    from nrc.volume.optical_depth import scene_optical_depth
+
+    for density, want in ((0.5, 0.25), (4.0, 0.5)):
+        scene = load_scene(compose([*SMALL, f"scene.volume.density_scale={density}"]).scene)
+        fraction, tau = auto_unbiased_fraction(scene)
+        assert fraction == want
+        assert tau == pytest.approx(scene_optical_depth(scene).median, rel=0.25)  # on a smaller camera
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",
+                   "scene.volume.density_scale=4"])
+    assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None
+    r = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    assert r.settings.training.unbiased_fraction == 0.5 and r.optical_depth >= 40
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=0.1"])
+    assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction == 0.1
+    with pytest.raises(ConfigError, match="renderer.training.unbiased_fraction"):
+        NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.unbiased_fraction=most"]).renderer)

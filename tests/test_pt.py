@@ -152,12 +152,9 @@ def test_renderer_settings_reject_unknown_and_bad_keys(renderer, bad, message):
 
 def test_path_tracer_settings_come_from_the_yaml():
     """One home for each default: the YAML (the dataclass reads every key as required)."""
-    from omegaconf import OmegaConf
-
-    from conftest import CONF_DIR
     from nrc.render.pt import PathTracerSettings
 
-    st = PathTracerSettings.from_config(OmegaConf.load(CONF_DIR / "renderer" / "pt.yaml"))
+    st = PathTracerSettings.from_config(compose(["renderer=pt"]).renderer)
     assert (st.slots, st.backend, st.russian_roulette, st.rr_start) == (65536, "auto", False, 8)
     from nrc.errors import ConfigError
 

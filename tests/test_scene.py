@@ -174,3 +174,47 @@ def test_thick_presets_load_and_render_a_few_pixels(preset, request):
     assert scene_optical_depth(scene).median > 40  # the thick regime (the moderate presets: 3-17)
     image = PathTracer(scene, cfg).render().image
     assert np.isfinite(image).all() and image.mean() > 0
+
+
+def test_animated_scene_turns_the_camera_or_the_suns():
+    """One rule for every animated run (renderer.animate): orbit turns the camera about world +y through the box
+    centre, sun turns the directional lights; frame 0 and mode none leave the scene as it is."""
+    from nrc.scene import animated_scene
+
+    scene = load_scene(compose([*SMALL, "scene=sun_sky"]).scene)
+    assert animated_scene(scene, "orbit", 30.0, 0) is scene and animated_scene(scene, "none", 30.0, 5) is scene
+    orbit = animated_scene(scene, "orbit", 45.0, 2)  # a quarter turn
+    centre = scene.grid.box.center
+    rel0, rel1 = scene.camera.position - centre, orbit.camera.position - centre
+    assert rel1[1].item() == pytest.approx(rel0[1].item(), abs=1e-4)
+    assert (rel0[[0, 2]] * rel1[[0, 2]]).sum().item() == pytest.approx(0.0, abs=1e-3)
+    assert orbit.lights == scene.lights
+    sun = animated_scene(scene, "sun", 90.0, 2)  # half a turn: x and z flip
+    assert sun.camera is scene.camera
+    (d0,), (d1,) = scene.lights_of(DirectionalLight), sun.lights_of(DirectionalLight)
+    torch.testing.assert_close(d1.direction, d0.direction * torch.tensor([-1.0, 1.0, -1.0]), atol=1e-6, rtol=0)
+    assert sun.lights_of(EnvironmentLight) == scene.lights_of(EnvironmentLight)
+    with pytest.raises(ConfigError, match="renderer.animate.mode"):
+        animated_scene(scene, "spin", 1.0, 1)
+
+
+@pytest.mark.parametrize("preset, density, g, kinds", [
+    ("disney", 0.6, 0.8, [DirectionalLight]),
+    ("side_lit", 0.6, 0.5, [DirectionalLight, EnvironmentLight]),
+    ("back_lit_thin", 0.15, 0.95, [DirectionalLight]),
+    ("point_below", 0.6, -0.3, [PointLight]),
+    ("thick10", 10.0, 0.85, [DirectionalLight, EnvironmentLight]),
+])
+def test_scene_types_of_the_scripts_are_presets(preset, density, g, kinds, shared_vdb):
+    """The scene types the benchmark scripts name (`--preset side_lit`) are files of conf/scene/ on the Disney
+    cloud; the scripts' preset() is `scene=<name>`."""
+    from nrc.evaluation.speed_vs_error import PRESETS, preset as overrides
+
+    assert preset in PRESETS and overrides(preset) == [f"scene={preset}"]
+    cfg = compose([*overrides(preset), f"scene.volume.path={shared_vdb}", "scene.camera.width=8",
+                   "scene.camera.height=5"])
+    scene = load_scene(cfg.scene)
+    assert cfg.scene.volume.source == "vdb" and float(cfg.scene.volume.density_scale) == density
+    assert scene.g == pytest.approx(g) and [type(light) for light in scene.lights] == kinds
+    with pytest.raises(ValueError, match="unknown scene type 'nope'"):
+        overrides("nope")

@@ -152,3 +152,26 @@ def test_equal_time_front_is_flat_where_more_time_did_not_help(sve):
     assert not q["extrapolated"]
     (q,) = sve.equal_time_ratios(base + [{**nrc, "time_s": 2.0}], "pt")  # beyond every measured frame: ~ 1/time
     assert q["extrapolated"] and q["pt_rel_mse"] == pytest.approx(0.002 * 0.5 / 2.0)
+
+
+@pytest.mark.slow
+def test_animation_whole_run_smoke(tmp_path):
+    """scripts/bench_animation.py's library on a tiny scene: all frames rendered, every k-th scored against its own
+    reference (a sun that turns changes the reference), whole-run times and the path tracer's error at NRC's time."""
+    from nrc.evaluation import animation
+
+    tiny = [*TINY, "scene=sun_sky", "renderer.backend=eager"]
+    res = animation.animation(tiny, {"nrc": ["encoding=triangle_oneblob", "cache.network.n_neurons=16",
+                                              "cache.network.n_hidden_layers=2", "renderer.training.width=8",
+                                              "renderer.training.height=8"]},
+                              [1, 2], frames=4, score_every=2, mode="sun", ref_spp=16, ref_chunk=8,
+                              ref_dir=tmp_path, log=lambda *a: None)
+    assert res["scored_frames"] == [1, 3] and len(list(tmp_path.glob("anim_*.exr"))) == 2
+    pt1, pt2, nrc = res["rows"]
+    assert (pt1["config"], pt2["config"], nrc["config"]) == ("pt", "pt", "nrc")
+    for r in res["rows"]:
+        assert r["whole_s"] > r["frame_s"] > 0 and r["whole_oidn_s"] >= r["whole_s"]
+        assert r["rel_mse_medium"] > 0 and 0 < r["mean_ratio_medium"] < 10
+    assert pt2["rel_mse_medium"] < pt1["rel_mse_medium"] * 1.5
+    assert nrc["ratio_vs_pt"] == pytest.approx(nrc["rel_mse_medium"] / nrc["pt_rel_mse_medium"])
+    assert "whole run" in animation.markdown(res)

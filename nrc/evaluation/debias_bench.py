@@ -31,12 +31,12 @@ import torch
 
 from nrc.config import compose
 from nrc.metrics import mean_ratio, medium_mask, rel_mse
+from nrc.evaluation.animation import SEED_BASE, frame_reference, nrc_frames, pt_image, score
 from nrc.evaluation.reference import REF_SEED, medium_alpha
-from nrc.evaluation.speed_vs_error import baseline_error, nrc_run, pt_render, pt_warmup
-from nrc.scene import load_scene
+from nrc.evaluation.speed_vs_error import baseline_error, pt_warmup
+from nrc.scene import animated_scene, load_scene
 
 REPO = Path(__file__).resolve().parents[2]
-SEED_BASE = 1000
 
 
 # ---------------------------------------------------------------------------- statistics
@@ -85,23 +85,6 @@ def compare(ours: list[np.ndarray], theirs: list[np.ndarray], mask: np.ndarray, 
 
 
 # ---------------------------------------------------------------------------- runs
-def nrc_frames(cfg: Any, scene: Any, frames: int, seed: int, keep: range | None = None,
-               accumulate: bool = False) -> tuple[list[np.ndarray], list[float], np.ndarray, dict]:
-    """Run NRC for ``frames`` frames (:func:`~nrc.evaluation.speed_vs_error.nrc_run`); the frames in ``keep``
-    (their images) and their times per frame, the final output (the accumulated image with ``accumulate``) and
-    the metrics."""
-    images, times = [], []
-    keep = keep if keep is not None else range(0)
-
-    def on_frame(frame: int, image: np.ndarray, output: np.ndarray, stats: dict) -> None:
-        if frame in keep:
-            images.append(np.asarray(image, np.float64))
-            times.append(float(stats["time_frame_s"]))
-
-    res = nrc_run(scene, cfg, int(scene.integrator.spp), seed, frames, accumulate, on_frame)
-    return images, times, res.image.astype(np.float64), res.metrics
-
-
 def blocks(presets: dict[str, list[str]], qs: list[Any], runs: int, frames: int, mitsuba_spp: int,
            extra: list[str], block: int, log: Any = print, save: Path | None = None) -> list[dict[str, Any]]:
     """The block check (module docstring) for every preset and ``q`` (``"pt"``: our path tracer, the control)."""
@@ -138,50 +121,6 @@ def blocks(presets: dict[str, list[str]], qs: list[Any], runs: int, frames: int,
     return rows
 
 
-def frame_camera(scene: Any, cfg: Any, frame: int) -> Any:
-    """The camera of ``frame`` under ``renderer.animate.mode=orbit`` (the NRC renderer's rule)."""
-    from nrc.render.radiance_caching.renderer import orbit_camera
-
-    if frame == 0:
-        return scene.camera
-    return orbit_camera(scene.camera, scene.grid.box.center, float(cfg.renderer.animate.degrees_per_frame) * frame)
-
-
-def pt_image(cfg: Any, scene: Any, spp: int, seed: int) -> tuple[np.ndarray, float]:
-    """A path-traced image (float64, non-finite values 0) and its wall time
-    (:func:`~nrc.evaluation.speed_vs_error.pt_render`)."""
-    image, seconds = pt_render(scene, cfg, spp, seed)
-    return image.astype(np.float64), seconds
-
-
-def moving_reference(cfg: Any, scene: Any, spp: int, chunk: int, path: Path) -> np.ndarray:
-    """A path-traced reference of ``scene`` (its camera) with seeds from the reference stream, cached at ``path``."""
-    from nrc.io import read_exr, write_exr
-
-    if path.is_file():
-        return read_exr(path)[0][..., :3].astype(np.float64)
-    total = None
-    for i in range(spp // chunk):
-        img, _ = pt_image(cfg, scene, chunk, REF_SEED + 5000 + i)
-        total = img if total is None else total + img
-    ref = total / (spp // chunk)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(path, ref.astype(np.float32), {"spp": int(spp), "what": "moving-camera reference (bench_debias)"})
-    return ref
-
-
-def score(images: list[np.ndarray], refs: list[np.ndarray], masks: list[np.ndarray]) -> dict[str, Any]:
-    from nrc.denoise import clamp_bias, denoise
-
-    out: dict[str, Any] = {}
-    den = [denoise(x).astype(np.float64) for x in images]
-    for tag, ims in (("", images), ("_oidn", den)):
-        out["rel_mse_medium" + tag] = float(np.mean([rel_mse(x, r, m) for x, r, m in zip(ims, refs, masks)]))
-        out["mean_ratio_medium" + tag] = float(np.mean([mean_ratio(x, r, m) for x, r, m in zip(ims, refs, masks)]))
-    out["clamp_bias"] = float(np.mean([clamp_bias(x) for x in images]))
-    return out
-
-
 def moving(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], warmup: int, frames: int,
            repeats: int, ref_spp: int, ref_chunk: int, ref_dir: Path, log: Any = print) -> dict[str, Any]:
     """The moving-camera check (module docstring)."""
@@ -191,7 +130,8 @@ def moving(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], 
     ncfg0 = compose(["renderer=nrc", *preset, *anim])
     scene0 = load_scene(ncfg0.scene)
     scored = range(warmup, warmup + frames)
-    cams = [frame_camera(scene0, ncfg0, f) for f in scored]
+    deg = float(ncfg0.renderer.animate.degrees_per_frame)
+    cams = [animated_scene(scene0, "orbit", deg, f).camera for f in scored]
     pcfg = compose(["renderer=pt", *preset, "renderer.backend=compiled"])
     pscene = load_scene(pcfg.scene, pcfg.device)
     h = scene_hash(pcfg)[:12]
@@ -199,7 +139,7 @@ def moving(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], 
     for f, cam in zip(scored, cams):
         s = dataclasses.replace(pscene, camera=cam)
         t0 = time.perf_counter()
-        refs.append(moving_reference(pcfg, s, ref_spp, ref_chunk, ref_dir / f"moving_{h}_orbit{f}_{ref_spp}spp.exr"))
+        refs.append(frame_reference(pcfg, s, ref_spp, ref_chunk, ref_dir / f"moving_{h}_orbit{f}_{ref_spp}spp.exr"))
         masks.append(medium_mask(medium_alpha(s)))
         log(f"reference of frame {f}: {time.perf_counter() - t0:.1f} s")
     rows: list[dict[str, Any]] = []

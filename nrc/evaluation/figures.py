@@ -49,10 +49,10 @@ REPO = Path(__file__).resolve().parents[2]
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
 
 COMPARISONS: dict[str, tuple[str, list[str]]] = {
-    "side_lit": ("the Disney cloud side-lit by sun and sky, g 0.5 (speed_vs_error --preset side_lit)", [
-        "scene=sun_sky", "scene.volume.source=vdb", "scene.volume.path=" + str(SHARED_VDB),
-        "scene.volume.density_scale=0.6", "scene.volume.g=0.5", "scene.lights.0.direction=[-1,-0.25,0]"]),
+    "side_lit": ("the Disney cloud side-lit by sun and sky, g 0.5 (scene=side_lit)", ["scene=side_lit"]),
     "default": ("the default scene (scene=sun)", []),
+    "thick10": ("the Disney cloud as a thick cumulus (scene=thick10: albedo 0.99, g 0.85, median optical depth ~200)",
+                ["scene=thick10"]),
 }
 RENDER_SEEDS = range(0, 1000)  # the seeds of the compared renders (pt 7, 11-13, 100 + frame; nrc 0)
 PT_SEEDS = (11, 12, 13)  # the comparison's path-traced renders (the first also sets the spp)

@@ -63,40 +63,20 @@ from nrc.evaluation.reference import (REF_SEED, check_independent, default_refer
                                      render_reference)
 from nrc.scene import load_scene  # noqa: E402
 
-SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
-PRESETS: dict[str, list[str]] = {
-    "disney": [
-        "scene=sun_front", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
-        "scene.volume.density_scale=0.6", "scene.camera.width=160", "scene.camera.height=90",
-    ],
-    # the scene types of docs/results.md (the Disney cloud unless named otherwise)
-    "side_lit": [
-        "scene=sun_sky", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
-        "scene.volume.density_scale=0.6", "scene.volume.g=0.5", "scene.lights.0.direction=[-1,-0.25,0]",
-        "scene.camera.width=160", "scene.camera.height=90",
-    ],
-    "back_lit_thin": [
-        "scene=sun_front", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
-        "scene.volume.density_scale=0.15", "scene.volume.g=0.95", "scene.lights.0.direction=[0.2,-0.3,0.93]",
-        "scene.camera.width=160", "scene.camera.height=90",
-    ],
-    "point_below": [
-        "scene=point", "scene.volume.source=vdb", f"scene.volume.path={SHARED_VDB}",
-        "scene.volume.density_scale=0.6", "scene.volume.g=-0.3", "scene.lights.0.position=[0,-60,0]",
-        "scene.lights.0.intensity=[3000,2900,2800]", "scene.camera.width=160", "scene.camera.height=90",
-    ],
-    "cumulus": ["scene=sun", "scene.camera.width=160", "scene.camera.height=90"],  # the default scene
-    # thick, bright clouds (conf/scene/thick*.yaml: albedo 0.99, g 0.85, sun + sky; median optical depth ~100 / ~200)
-    "thick": ["scene=thick", f"scene.volume.path={SHARED_VDB}", "scene.camera.width=160", "scene.camera.height=90"],
-    "thick10": ["scene=thick", f"scene.volume.path={SHARED_VDB}", "scene.volume.density_scale=10",
-                "scene.camera.width=160", "scene.camera.height=90"],
-    "thick_cumulus": ["scene=thick_cumulus", "scene.camera.width=160", "scene.camera.height=90"],
-    # the light-sampling scenes of docs/path_tracer.md (the procedural cumulus)
-    "many_lights": ["scene=many_lights", "scene.camera.width=160", "scene.camera.height=90"],
-    "sun_sky": ["scene=sun_sky", "scene.camera.width=160", "scene.camera.height=90"],
-    "lantern": ["scene=lantern", "scene.camera.width=80", "scene.camera.height=45"],
-    "none": [],
-}
+# The scene types of the scripts are the files of conf/scene/ (``--preset side_lit`` is ``scene=side_lit``; the
+# Disney cloud's ones read ../shared/data relative to the repo root, where the scripts run); ``none`` adds nothing.
+PRESETS: tuple[str, ...] = (*sorted(p.stem for p in (Path(CONF_DIR) / "scene").glob("*.yaml") if p.stem != "base"),
+                            "none")
+PRESET_SIZES = {"lantern": ["scene.camera.width=80", "scene.camera.height=45"]}  # the size its runs were measured at
+
+
+def preset(name: str) -> list[str]:
+    """The overrides of the scene type ``name`` (one of :data:`PRESETS`)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown scene type {name!r}: one of {', '.join(PRESETS)}")
+    return [] if name == "none" else [f"scene={name}", *PRESET_SIZES.get(name, [])]
+
+
 # name -> Hydra overrides. The pt configurations together (their Pareto front) are the baseline of the ratios.
 CONFIGS: dict[str, list[str]] = {
     "pt": ["renderer=pt", "transmittance=ratio"],
@@ -685,7 +665,7 @@ def get_reference(cfg, args, log) -> tuple[Path, Any]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=REPO / "outputs" / "speed_vs_error")
-    p.add_argument("--preset", choices=sorted(PRESETS), default="disney", help="scene overrides applied first")
+    p.add_argument("--preset", choices=PRESETS, default="disney", help="scene overrides applied first")
     p.add_argument("--mode", choices=["single", "accumulate", "both"], default="both")
     p.add_argument("--configs", default=",".join(DEFAULT_CONFIGS), help="comma-separated names (see CONFIGS)")
     p.add_argument("--config", action="append", default=[], metavar="NAME=OV1,OV2", help="a custom configuration")
@@ -725,7 +705,7 @@ def main(argv: list[str] | None = None) -> int:
         return replot(args.replot)
     args.pt_spp = [int(s) for s in args.pt_spp.split(",")]
     args.nrc_spp = [int(s) for s in args.nrc_spp.split(",")]
-    args.scene_overrides = PRESETS[args.preset] + overrides
+    args.scene_overrides = preset(args.preset) + overrides
     args.nrc_overrides = [o for o in args.nrc_overrides.split(",") if o]
     if args.threads:
         torch.set_num_threads(args.threads)

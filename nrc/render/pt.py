@@ -61,8 +61,8 @@ __all__ = ["BACKENDS", "PathTracer", "PathTracerSettings"]
 
 @dataclass(frozen=True)
 class PathTracerSettings:
-    """The validated ``renderer`` block of ``renderer=pt``. Every default lives in ``conf/renderer/pt.yaml``
-    (read here as required keys); unknown keys are errors naming the key."""
+    """The validated ``renderer`` block of ``renderer=pt``. Every default lives in ``conf/renderer/pt.yaml`` and
+    ``conf/renderer/shared/wavefront.yaml`` (read here as required keys); unknown keys are errors naming the key."""
 
     slots: int
     """Paths in flight (the working set); memory grows linearly with it (136 bytes a slot)."""

@@ -49,7 +49,8 @@ POINT_LIGHT_SAMPLING = ("none", "equiangular")
 @dataclass(frozen=True)
 class LightSamplingSettings:
     """How the renderers sample lights: the ``renderer`` keys ``light_selection``, ``ris.candidates`` and
-    ``point_light_sampling`` (``conf/renderer/pt.yaml``, ``nrc.yaml``; one reader for both renderers)."""
+    ``point_light_sampling`` (``conf/renderer/shared/wavefront.yaml``, included by both
+    renderers; one reader)."""
 
     selection: str = "uniform"
     """``uniform`` | ``power`` | ``ris`` (module docstring)."""

@@ -30,7 +30,6 @@ a message (the checkpoint on disk stays the last good one).
 from __future__ import annotations
 
 import logging
-import math
 import os
 import signal
 import threading
@@ -57,7 +56,7 @@ from nrc.camera import Camera
 from nrc.render.radiance_caching.frame_log import LIGHT_SCALARS, FrameLog
 from nrc.render.radiance_caching.inference_filter import filtered_query
 from nrc.render.radiance_caching.paths import NRCPathTracer, PathSet
-from nrc.render.radiance_caching.settings import NRCSettings, app_checks, ring_size
+from nrc.render.radiance_caching.settings import NRCSettings, app_checks, auto_unbiased_fraction, ring_size
 from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 from nrc.transport.rng import RandomSource
@@ -65,26 +64,11 @@ from nrc.render.wavefront.machine import compiled_graphs
 from nrc.render.wavefront.reuse import make_reuse
 from nrc.render.radiance_caching.training_set import (auto_training_size, frame_records, medium_pixel_mask,
                                                       training_positions, training_targets)
-from nrc.scene import Scene
+from nrc.scene import Scene, animated_scene, turned_suns
 from nrc.transport.light_sampling import LightSampler
-from nrc.transport.lights import DirectionalLight
 from nrc.transport.transmittance import make_transmittance
 
 FrameCallback = Callable[[int, np.ndarray, np.ndarray, dict[str, Any]], None]
-
-
-def rotation_y(degrees: float, device: torch.device) -> Tensor:
-    """``(3, 3)`` rotation about world +y (right-handed) by ``degrees``."""
-    a = math.radians(degrees)
-    c, s = math.cos(a), math.sin(a)
-    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float32, device=device)
-
-
-def orbit_camera(camera: Camera, centre: Tensor, degrees: float) -> Camera:
-    """``camera`` orbited by ``degrees`` about world +y through ``centre`` (``animate.mode=orbit``)."""
-    rot = rotation_y(degrees, camera.position.device)
-    return replace(camera, position=rot @ (camera.position - centre) + centre, forward=rot @ camera.forward,
-                   right=rot @ camera.right, up=rot @ camera.up)
 
 
 MAX_NONFINITE_STEPS = 8  # consecutive skipped (non-finite) training steps that stop a run
@@ -156,6 +140,11 @@ class NRCRenderer:
                                       tr.paths_per_pixel, tr.min_paths, tr.max_paths)
             tr = replace(tr, width=w, height=h)
             self.settings = st = replace(st, training=tr)
+        self.optical_depth = None  # the median over the camera rays, when unbiased_fraction is auto
+        if tr.unbiased_fraction is None:
+            fraction, self.optical_depth = auto_unbiased_fraction(scene)
+            tr = replace(tr, unbiased_fraction=fraction)
+            self.settings = st = replace(st, training=tr)
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
@@ -196,19 +185,15 @@ class NRCRenderer:
 
     # ------------------------------------------------------------------ per-frame scene state
     def frame_camera(self, frame: int) -> Camera:
-        """The camera of ``frame`` (orbiting the box centre about world +y with ``animate.mode=orbit``)."""
-        cam = self.scene.camera
-        if self.settings.animate != "orbit" or frame == 0:
-            return cam
-        return orbit_camera(cam, self.scene.grid.box.center, self.settings.degrees_per_frame * frame)
+        """The camera of ``frame`` (:func:`nrc.scene.animated_scene`: it orbits with ``animate.mode=orbit``)."""
+        return animated_scene(self.scene, self.settings.animate, self.settings.degrees_per_frame, frame).camera
 
     def frame_lights(self, frame: int) -> LightSampler:
-        """The lights of ``frame`` (directional lights rotating about world +y with ``animate.mode=sun``)."""
+        """The lights of ``frame`` (:func:`nrc.scene.animated_scene`: the directional lights turn with
+        ``animate.mode=sun``)."""
         if self.settings.animate != "sun" or frame == 0:
             return self.lights
-        rot = rotation_y(self.settings.degrees_per_frame * frame, self.device)
-        return self.lights.with_lights(tuple(replace(lt, direction=rot @ lt.direction)
-                                             if isinstance(lt, DirectionalLight) else lt for lt in self.lights.lights))
+        return self.lights.with_lights(turned_suns(self.lights.lights, self.settings.degrees_per_frame * frame))
 
     # ------------------------------------------------------------------ one frame
     def frame_rng(self, frame: int) -> RandomSource:
@@ -430,6 +415,7 @@ class NRCRenderer:
             "shadow_rays": int(sum(h.get("shadow_rays", []))),
             "equiangular_segments": int(sum(h.get("equiangular_segments", []))),
             "training_image": [st.training.width, st.training.height], "training_auto": st.training.auto,
+            "unbiased_fraction": st.training.unbiased_fraction, "optical_depth_median": self.optical_depth,
             "medium_pixels": self.medium_pixels,
             "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,
             "compiled_graphs_in_process": compiled_graphs() if self.tracer.backend == "compiled" else None,

@@ -6,7 +6,8 @@ config blocks (:class:`nrc.config.ConfigReader`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 from typing import Any
 
 from nrc.config import ConfigReader
@@ -15,9 +16,9 @@ from nrc.render.radiance_caching.debias import DebiasSettings
 from nrc.render.radiance_caching.termination import Termination
 from nrc.render.wavefront.reuse import ReuseSettings
 from nrc.render.wavefront.step import RussianRoulette
+from nrc.scene import ANIMATIONS
 from nrc.transport.light_sampling import LightSamplingSettings
 
-ANIMATIONS = ("none", "orbit", "sun")
 CACHE_TARGETS = ("full", "indirect")
 
 
@@ -27,7 +28,7 @@ class TrainingSettings:
     height: int | None  # training image height; None: auto
     records_per_path: int  # V
     extra_vertices: int  # vertices a training path goes past the render path's stop
-    unbiased_fraction: float  # probability that a training path never terminates into the cache
+    unbiased_fraction: float | None  # probability that a training path never terminates into the cache; None: auto
     unbiased_max_vertices: int  # ... until this vertex after all (0: never; it runs to max_scatter)
     ring_buffer: int | None  # records kept from earlier frames; None: auto (RING_FRAMES frames of records, capped)
     query_weights: str = "raw"  # cache weights of the training paths' terminal queries: ema | raw
@@ -98,7 +99,7 @@ class NRCSettings:
                 **_training_size(tr),
                 records_per_path=tr.get_int("records_per_path", lo=1),
                 extra_vertices=tr.get_int("extra_vertices", lo=0),
-                unbiased_fraction=tr.get_float("unbiased_fraction", lo=0.0, hi=1.0),
+                unbiased_fraction=_unbiased_fraction(tr),
                 unbiased_max_vertices=tr.get_int("unbiased_max_vertices", lo=0),
                 ring_buffer=_ring_buffer(tr),
                 query_weights=tr.get_choice("query_weights", ["raw", "ema"]),
@@ -141,6 +142,34 @@ def _training_size(tr: ConfigReader) -> dict[str, Any]:
         raise ConfigError(f"renderer.training.width and height must both be auto or both integers, got "
                           f"width={raw['width']!r} height={raw['height']!r}")
     return {"width": tr.get_int("width", lo=1), "height": tr.get_int("height", lo=1)}
+
+
+def _unbiased_fraction(tr: ConfigReader) -> float | None:
+    """``training.unbiased_fraction``: ``auto`` (None: :func:`auto_unbiased_fraction`) or a number in [0, 1]."""
+    if tr.get_raw("unbiased_fraction", None) == "auto":
+        return None
+    return tr.get_float("unbiased_fraction", lo=0.0, hi=1.0)
+
+
+THICK_OPTICAL_DEPTH = 40.0  # auto: a scene whose median optical depth reaches this is thick (docs/scenes.md)
+UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/nrc.md, "Unbiased training paths")
+OPTICAL_DEPTH_PIXELS = 64 * 36  # auto: the optical depth is taken over a camera of about this many pixels
+
+
+def auto_unbiased_fraction(scene: Any) -> tuple[float, float]:
+    """``(fraction, median optical depth)``: the unbiased training paths' share chosen by the scene's median
+    optical depth over its camera rays (:func:`nrc.volume.optical_depth.scene_optical_depth`, on the same camera
+    at about :data:`OPTICAL_DEPTH_PIXELS` pixels): :data:`UNBIASED_FRACTION` ``thick`` from
+    :data:`THICK_OPTICAL_DEPTH` on, else ``moderate``. In a thick cloud self-training passes most of a cached
+    value on to the targets; more fully traced paths bring the image mean up sooner there, and cost accuracy on
+    moderate clouds (measured in docs/nrc.md)."""
+    from nrc.volume.optical_depth import scene_optical_depth
+
+    cam = scene.camera
+    k = max(1.0, math.sqrt(cam.num_pixels / OPTICAL_DEPTH_PIXELS))
+    small = replace(cam, width=max(1, round(cam.width / k)), height=max(1, round(cam.height / k)))
+    tau = scene_optical_depth(replace(scene, camera=small)).median
+    return UNBIASED_FRACTION["thick" if tau >= THICK_OPTICAL_DEPTH else "moderate"], tau
 
 
 RING_FRAMES = 4  # ring_buffer: auto keeps this many frames of records ...

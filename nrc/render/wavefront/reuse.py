@@ -119,7 +119,7 @@ class CoarseTransmittance:
 
 @dataclass(frozen=True)
 class ReuseSettings:
-    """``renderer.reuse`` (``conf/renderer/pt.yaml``, ``nrc.yaml``; one reader for both renderers)."""
+    """``renderer.reuse`` (``conf/renderer/shared/wavefront.yaml``, included by both renderers; one reader)."""
 
     mode: str = "none"
     """``none`` | ``spatial`` | ``spatiotemporal`` (module docstring)."""
