@@ -33,8 +33,8 @@ def _pyoidn():
     try:
         import pyoidn
     except ImportError:
-        raise NRCError("denoise=oidn needs Intel Open Image Denoise: pip install -e '.[denoise]' (the pyoidn "
-                       "package)") from None
+        raise NRCError("denoise=oidn (the default) needs Intel Open Image Denoise: pip install pyoidn (a "
+                       "dependency of nrc), or run with denoise=none") from None
     return pyoidn
 
 

@@ -137,8 +137,10 @@ def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
     assert report.main(["nrc_vs_pt", "--root", str(root), "--docs", str(tmp_path / "docs"), "--results",
                         "--intro", str(tmp_path / "intro.md")]) == 0
     results = (tmp_path / "docs" / "results.md").read_text()
-    assert "Hand-written intro." in results and "docs/results/oidn_480x270_side_lit/summary.json` is missing" in results
-    assert "NRC vs PT at 1 spp" in results and "equal-time relMSE ratio" not in results
+    # the hand-written page linked, not copied; each report linked to its own page
+    assert "intro.md) (hand-written)" in results and "Hand-written intro." not in results
+    assert "docs/results/oidn_480x270_side_lit/summary.json` is missing" in results
+    assert "[nrc_vs_pt](results/nrc_vs_pt.md)" in results and "equal-time relMSE ratio" not in results
 
 
 def test_headline_is_nrc_plus_oidn_against_pt_plus_oidn_with_the_bias():

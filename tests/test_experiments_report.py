@@ -112,6 +112,10 @@ def test_results_rewrites_the_readme_block_only_and_is_idempotent(docs, tmp_path
     results = (docs / "results.md").read_text()
     assert "relMSE ratio **3.5**" in results and "to 3.5x (side-lit" in text.replace("\n", " ")
     assert "1.3 (mean 1.02)" in results and "is 1.3x (the default cumulus" in text.replace("\n", " ")
+    # docs/results.md is a short summary; each run has its own page, linked from it
+    assert len(results.splitlines()) <= 150 and "](results/oidn_160x90_side_lit/README.md)" in results
+    page = (docs / "results" / "oidn_160x90_side_lit" / "README.md").read_text()
+    assert "| a table |" in page and "| a table |" not in results and "![speed vs error" in page
     # no generated line would start a Markdown list or heading
     generated = text[len(BEFORE):-len(AFTER)].splitlines()
     assert len(generated) > 10 and not any(line.startswith(("+", "-", "#")) for line in generated)
@@ -182,3 +186,18 @@ def test_crossover_summary_states_where_nrc_pays_off(tmp_path):
     assert "With a warm cache (150 warm-up frames): 0.7x at optical depth 98 (albedo 0.99, image mean 0.97)" in \
         ex.crossover_summary(tmp_path)
     assert any("A warm cache" in line for line in ex.crossover_section(tmp_path))
+    crossover_map(tmp_path, [(98.0, 0.99, 1.2)], "crossover_480x270")
+    assert "At 480 x 270: 1.2x at optical depth 98 (albedo 0.99" in ex.crossover_summary(tmp_path)
+    assert any(line.startswith("**At 480 x 270**") for line in ex.crossover_section(tmp_path))
+    a = tmp_path / "results" / ex.ANIMATION
+    a.mkdir(parents=True)
+    rows = [{"config": "pt", "spp": 1, "whole_oidn_s": 70.0},
+            {"config": "nrc", "whole_oidn_s": 66.0, "ratio_vs_pt_oidn": 0.8, "ratio_vs_pt": 0.2,
+             "extrapolated_oidn": False}]
+    (a / "summary.json").write_text(json.dumps({"meta": {"argv": ["--frames", "60"]}, "animation": {
+        "rows": rows, "frames": 60, "scored_frames": [9, 19, 29, 39, 49, 59]}}))
+    (a / "animation.md").write_text("| the table |")
+    text = ex.crossover_summary(tmp_path)
+    assert "A whole 60-frame animation of the turning sun" in text and "every 10th frame scored" in text
+    assert "takes NRC 66 s with OIDN, and its error is 0.8x the path tracer + OIDN's" in text
+    assert "| the table |" in ex.crossover_section(tmp_path)
