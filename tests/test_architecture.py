@@ -68,3 +68,17 @@ def test_no_script_edits_sys_path():
                     and node.value.id == "sys":
                 bad.append(f"{p.name}:{node.lineno}")
     assert not bad, bad
+
+
+def test_renderer_components_take_their_settings_whole():
+    """Settings travel whole (one new setting must not touch a chain of signatures): the NRC renderer's tracer and
+    the path tracer take the scene, the estimator and their settings dataclass, not one argument per key."""
+    import inspect
+
+    from nrc.render.radiance_caching.paths import NRCPathTracer
+    from nrc.render.radiance_caching.renderer import NRCRenderer
+    from nrc.render.pt import PathTracer
+
+    for cls in (NRCPathTracer, NRCRenderer, PathTracer):
+        params = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
+        assert len(params) <= 6, f"{cls.__name__}.__init__ takes {len(params)} parameters: {params}"

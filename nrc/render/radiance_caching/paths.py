@@ -60,13 +60,13 @@ from torch import Tensor
 
 from nrc.camera import Camera
 from nrc.transport.rng import RandomSource
-from nrc.render.radiance_caching.termination import Termination
+from nrc.render.radiance_caching.settings import NRCSettings
 from nrc.render.wavefront import build_core, camera_paths
 from nrc.render.wavefront.driver import Harvest, Wavefront
 from nrc.render.wavefront.reuse import VertexRecord
-from nrc.render.wavefront.step import NRCRule, RussianRoulette
+from nrc.render.wavefront.step import NRCRule
 from nrc.scene import Scene
-from nrc.transport.light_sampling import LightSampler, LightSamplingSettings
+from nrc.transport.light_sampling import LightSampler
 from nrc.transport.rng import path_key
 
 
@@ -137,41 +137,32 @@ class NRCPathTracer:
     Args:
         scene: the validated scene (medium, albedo, g, ``integrator.max_scatter``).
         transmittance: the shadow-ray estimator (``make_transmittance``).
-        termination: the cache-termination rule.
-        records_per_path: training records kept per training path (``V >= 1``).
-        extra_vertices: vertices a training path goes past the render path's stop (``>= 0``).
-        slots: paths in flight; shadow_batch: next-event rays traced per estimator call.
-        brick, free_flight: the majorants (``renderer.brick``, ``renderer.free_flight``).
-        backend, steps_per_call, compile_min_samples: execution (:mod:`nrc.render.wavefront.setup`).
-        roulette: the throughput roulette (``renderer.russian_roulette``; it only reaches the paths that go on
-            past ``start`` vertices: unbiased training paths and ``renderer.debias`` suffixes).
-        unbiased_max_vertices: an unbiased training path terminates into the cache at this vertex after all (0:
-            never; it runs to ``max_scatter``).
+        settings: the renderer's settings, passed whole (:class:`~nrc.render.radiance_caching.settings.NRCSettings`,
+            its training image already sized): the termination rule, the training records per path and suffix
+            length, the unbiased training paths' cap, slots and shadow batch, the majorants, the execution backend,
+            the cache target, light sampling, the reuse vertex, ``debias`` and the throughput roulette (it only
+            reaches the paths that go on past ``start`` vertices: unbiased training paths and ``renderer.debias``
+            suffixes).
     """
 
-    def __init__(self, scene: Scene, transmittance: object, termination: Termination, records_per_path: int,
-                 extra_vertices: int, slots: int, shadow_batch: int, brick: object = "auto",
-                 free_flight: str = "brick", backend: str = "eager", steps_per_call: int = 1,
-                 compile_min_samples: int = 0, cache_target: str = "full",
-                 light_sampling: LightSamplingSettings = LightSamplingSettings(), reuse_vertex: int = 0,
-                 debias: bool = False, reuse_light_only: bool = False, roulette: RussianRoulette | None = None,
-                 unbiased_max_vertices: int = 0) -> None:
+    def __init__(self, scene: Scene, transmittance: object, settings: NRCSettings) -> None:
+        st, tr = settings, settings.training
         self.scene = scene
         self.device = scene.device
         self.transmittance = transmittance
-        self.termination = termination
-        self.V = records_per_path
-        self.extra_vertices = extra_vertices
-        self.unbiased_max_vertices = unbiased_max_vertices  # unbiased training paths end in the cache there (0: never)
-        self.slots = slots
-        self.shadow_batch = shadow_batch
-        self.cache_target = cache_target
-        self.light_sampling = light_sampling
-        self.reuse_vertex = reuse_vertex  # render paths' vertex recorded for reservoir reuse (0: none)
+        self.termination = st.termination
+        self.V = tr.records_per_path
+        self.extra_vertices = tr.extra_vertices
+        self.unbiased_max_vertices = tr.unbiased_max_vertices  # unbiased training paths end in the cache there (0: never)
+        self.slots = st.slots
+        self.shadow_batch = st.shadow_batch
+        self.cache_target = st.cache_target
+        self.light_sampling = st.light_sampling
+        self.reuse_vertex = st.reuse.vertex(scene.g)  # render paths' vertex recorded for reservoir reuse (0: none)
         # reuse.domain=distance: that vertex's direct light is all the reuse pass's, which needs no record
-        self.reuse_light_only = reuse_light_only
-        self.debias = debias  # renderer.debias: render paths may go on past their cache termination (q per frame)
-        self._core_args = (brick, free_flight, backend, steps_per_call, compile_min_samples, roulette)
+        self.reuse_light_only = st.reuse.light_only
+        self.debias = st.debias.enabled  # renderer.debias: render paths may go on past their cache termination (q per frame)
+        self._core_args = (st.brick, st.free_flight, st.backend, st.steps_per_call, st.compile_min_samples, st.roulette)
         self._cores: dict = {}
         self.core = self._core(RandomSource.counter_uniforms)
         self.frames = 1  # frames the renderer will trace (backend=auto weighs a compile against all of them)

@@ -148,11 +148,7 @@ class NRCRenderer:
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
-        self.tracer = NRCPathTracer(scene, self.transmittance, st.termination, tr.records_per_path,
-                                    tr.extra_vertices, st.slots, st.shadow_batch, st.brick, st.free_flight,
-                                    st.backend, st.steps_per_call, st.compile_min_samples, st.cache_target,
-                                    st.light_sampling, st.reuse.vertex(scene.g), st.debias.enabled,
-                                    st.reuse.light_only, st.roulette, tr.unbiased_max_vertices)
+        self.tracer = NRCPathTracer(scene, self.transmittance, st)
         self.reuse = make_reuse(st.reuse, scene.g, scene.integrator.spp, scene.grid, scene.albedo)
         self.tracer.frames = self.frames
         self.lights = st.light_sampling.sampler(scene)
