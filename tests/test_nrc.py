@@ -556,7 +556,7 @@ def test_flicker_in_metrics_and_lower_when_frames_accumulate():
 
 def test_auto_unbiased_fraction_follows_the_optical_depth():
     """training.unbiased_fraction=auto: half the training paths run to the end in a thick cloud (median optical
-    depth over the camera rays >= 40), a quarter in a moderate one; a fixed number stays as given; other words
+    depth over the camera rays >= 40) under a static camera and light, a quarter in a moderate one or animated; a fixed number stays as given; other words
     are config errors naming the key."""
     from nrc.render.radiance_caching.settings import NRCSettings, auto_unbiased_fraction
     from nrc.volume.optical_depth import scene_optical_depth
@@ -566,6 +566,7 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
         fraction, tau = auto_unbiased_fraction(scene)
         assert fraction == want
         assert tau == pytest.approx(scene_optical_depth(scene).median, rel=0.25)  # on a smaller camera
+        assert auto_unbiased_fraction(scene, "sun")[0] == 0.25  # a moving light: the quarter (docs/nrc.md)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",
                    "scene.volume.density_scale=4"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None

@@ -142,7 +142,7 @@ class NRCRenderer:
             self.settings = st = replace(st, training=tr)
         self.optical_depth = None  # the median over the camera rays, when unbiased_fraction is auto
         if tr.unbiased_fraction is None:
-            fraction, self.optical_depth = auto_unbiased_fraction(scene)
+            fraction, self.optical_depth = auto_unbiased_fraction(scene, st.animate)
             tr = replace(tr, unbiased_fraction=fraction)
             self.settings = st = replace(st, training=tr)
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)

@@ -156,20 +156,21 @@ UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/
 OPTICAL_DEPTH_PIXELS = 64 * 36  # auto: the optical depth is taken over a camera of about this many pixels
 
 
-def auto_unbiased_fraction(scene: Any) -> tuple[float, float]:
+def auto_unbiased_fraction(scene: Any, animate: str = "none") -> tuple[float, float]:
     """``(fraction, median optical depth)``: the unbiased training paths' share chosen by the scene's median
     optical depth over its camera rays (:func:`nrc.volume.optical_depth.scene_optical_depth`, on the same camera
     at about :data:`OPTICAL_DEPTH_PIXELS` pixels): :data:`UNBIASED_FRACTION` ``thick`` from
-    :data:`THICK_OPTICAL_DEPTH` on, else ``moderate``. In a thick cloud self-training passes most of a cached
-    value on to the targets; more fully traced paths bring the image mean up sooner there, and cost accuracy on
-    moderate clouds (measured in docs/nrc.md)."""
+    :data:`THICK_OPTICAL_DEPTH` on with a static camera and light (``animate`` ``none``), else ``moderate``. In a
+    thick cloud self-training passes most of a cached value on to the targets; more fully traced paths bring the
+    image mean up sooner there, and cost accuracy on moderate clouds and under a moving light, where the cache
+    overshoots (measured in docs/nrc.md)."""
     from nrc.volume.optical_depth import scene_optical_depth
 
     cam = scene.camera
     k = max(1.0, math.sqrt(cam.num_pixels / OPTICAL_DEPTH_PIXELS))
     small = replace(cam, width=max(1, round(cam.width / k)), height=max(1, round(cam.height / k)))
     tau = scene_optical_depth(replace(scene, camera=small)).median
-    return UNBIASED_FRACTION["thick" if tau >= THICK_OPTICAL_DEPTH else "moderate"], tau
+    return UNBIASED_FRACTION["thick" if tau >= THICK_OPTICAL_DEPTH and animate == "none" else "moderate"], tau
 
 
 RING_FRAMES = 4  # ring_buffer: auto keeps this many frames of records ...
