@@ -651,7 +651,7 @@ def readme_animation(figures: dict) -> list[str]:
 
 
 CROSSOVER = "crossover_160x90"  # docs/results/<this>/map.json: scripts/crossover_map.py's output
-ANIMATION = "animation_sun_160x90_thick"  # docs/results/<this>/summary.json: scripts/bench_animation.py's output
+ANIMATION = "animation_sun_160x90_thick_variants"  # scripts/bench_animation.py's output; its first NRC row: 1/4
 
 
 def crossover_summary(docs: Path, link: str = "[`docs/results.md`](docs/results.md)") -> str | None:
