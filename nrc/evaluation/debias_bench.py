@@ -19,7 +19,6 @@ Both write ``summary.json`` and a Markdown table into ``--out``.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import time
@@ -127,17 +126,14 @@ def moving(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], 
     from nrc.evaluation.reference import scene_hash
 
     anim = ["renderer.animate.mode=orbit"]
-    ncfg0 = compose(["renderer=nrc", *preset, *anim])
-    scene0 = load_scene(ncfg0.scene)
+    deg = float(compose(["renderer=nrc", *preset, *anim]).renderer.animate.degrees_per_frame)
     scored = range(warmup, warmup + frames)
-    deg = float(ncfg0.renderer.animate.degrees_per_frame)
-    cams = [animated_scene(scene0, "orbit", deg, f).camera for f in scored]
     pcfg = compose(["renderer=pt", *preset, "renderer.backend=compiled"])
     pscene = load_scene(pcfg.scene, pcfg.device)
+    scenes = [animated_scene(pscene, "orbit", deg, f) for f in scored]  # the scored frames' cameras
     h = scene_hash(pcfg)[:12]
     refs, masks = [], []
-    for f, cam in zip(scored, cams):
-        s = dataclasses.replace(pscene, camera=cam)
+    for f, s in zip(scored, scenes):
         t0 = time.perf_counter()
         refs.append(frame_reference(pcfg, s, ref_spp, ref_chunk, ref_dir / f"moving_{h}_orbit{f}_{ref_spp}spp.exr"))
         masks.append(medium_mask(medium_alpha(s)))
@@ -147,8 +143,8 @@ def moving(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], 
     for spp in pt_spp:
         ims, ts = [], []
         for rep in range(repeats):
-            for k, cam in enumerate(cams):
-                img, dt = pt_image(pcfg, dataclasses.replace(pscene, camera=cam), spp, SEED_BASE + 97 * rep + k)
+            for k, s in enumerate(scenes):
+                img, dt = pt_image(pcfg, s, spp, SEED_BASE + 97 * rep + k)
                 ims.append(img)
                 ts.append(dt)
         row = {"config": "pt", "spp": spp, "time_s": float(np.median(ts)), **score(ims, refs * repeats, masks * repeats)}

@@ -139,12 +139,11 @@ class NRCRenderer:
             w, h = auto_training_size(self.medium_pixels, scene.camera.width, scene.camera.height,
                                       tr.paths_per_pixel, tr.min_paths, tr.max_paths)
             tr = replace(tr, width=w, height=h)
-            self.settings = st = replace(st, training=tr)
         self.optical_depth = None  # the median over the camera rays, when unbiased_fraction is auto
         if tr.unbiased_fraction is None:
             fraction, self.optical_depth = auto_unbiased_fraction(scene, st.animate)
             tr = replace(tr, unbiased_fraction=fraction)
-            self.settings = st = replace(st, training=tr)
+        self.settings = st = replace(st, training=tr)  # the auto choices resolved
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
