@@ -220,7 +220,7 @@ def decompose_scene(spec: str, args, log) -> dict:
     """The variance decomposition of ``--decompose`` (module docstring) for ``name[:override,...]``."""
     import dataclasses
 
-    from nrc.render.wavefront.reuse import ReservoirReuse, VertexRecord
+    from nrc.render.reuse import ReservoirReuse, VertexRecord
 
     name, extra = parse_spec(spec)
     passes = args.frames
@@ -239,7 +239,7 @@ def decompose_scene(spec: str, args, log) -> dict:
     secs = {"trace": 0.0, "B": 0.0, **{k: 0.0 for k in reusers}}
     shade_args = (pt.transmittance, scene.grid, pt.majorants, gen, pt.shadow_batch)
     for j in range(passes):
-        rec = VertexRecord.empty(n, st.reuse.vertex(scene.g), scene.albedo, False, pt.device)
+        rec = VertexRecord.empty(n, st.reuse.vertex(scene.g), scene.albedo, pt.device)
         one = torch.zeros(n, 3, device=pt.device)
         t0 = time.perf_counter()
         pt._wavefront(machine, gen, rec).run(n, lambda r, j=j: pt._camera_paths(r * passes + j), one)

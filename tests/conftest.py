@@ -137,3 +137,13 @@ def hollow_lantern(tmp_path: Path, radius: float = 12.0) -> list[str]:
     path = tmp_path / "hollow.npz"
     np.savez(path, density=clear_pocket(load_scene(cfg.scene).grid, LANTERN_POSITION, radius).numpy())
     return ["scene=lantern", "scene.volume.source=npz", f"scene.volume.path={path}"]
+
+
+def load_script(name: str):
+    """``scripts/<name>.py`` as a module (the command lines live there, not in the package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"script_{name}", REPO / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import ast
+import io
+import re
+import tokenize
 from pathlib import Path
 
 from conftest import REPO
@@ -82,3 +85,58 @@ def test_renderer_components_take_their_settings_whole():
     for cls in (NRCPathTracer, NRCRenderer, PathTracer):
         params = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
         assert len(params) <= 6, f"{cls.__name__}.__init__ takes {len(params)} parameters: {params}"
+
+
+def _is_settings(arg: ast.arg) -> bool:
+    """A settings object: a parameter named ``settings`` or annotated with a ``...Settings`` / ``...Options`` type."""
+    note = ast.unparse(arg.annotation) if arg.annotation is not None else ""
+    return arg.arg == "settings" or note.endswith(("Settings", "Options"))
+
+
+def test_no_init_takes_more_than_six_parameters():
+    """Settings travel whole: no ``__init__`` in ``nrc/`` takes more than 6 parameters besides settings objects."""
+    bad = []
+    for path in sorted((REPO / "nrc").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef) and node.name == "__init__":
+                a = node.args
+                params = [p for p in (*a.posonlyargs, *a.args, *a.kwonlyargs)[1:] if not _is_settings(p)]
+                if len(params) > 6:
+                    bad.append(f"{path.relative_to(REPO)}:{node.lineno} takes {len(params)}")
+    assert not bad, bad
+
+
+# renderer features the integrator-agnostic core must not know (their renderers' vertex programs do)
+CORE_FEATURES = re.compile(r"debias|reuse|cache_target", re.I)
+CORE = REPO / "nrc" / "render" / "wavefront"
+
+
+def code_lines(path: Path) -> dict[int, str]:
+    """The lines of ``path`` that hold code (docstrings and comments left out), as their tokens joined."""
+    src = path.read_text()
+    docs: set[int] = set()
+    for node in ast.walk(ast.parse(src)):
+        if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
+            docs |= set(range(node.lineno, node.end_lineno + 1))
+    lines: dict[int, list[str]] = {}
+    skip = (tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE, tokenize.INDENT, tokenize.DEDENT, tokenize.ENDMARKER)
+    for tok in tokenize.generate_tokens(io.StringIO(src).readline):
+        if tok.type not in skip and tok.start[0] not in docs:
+            lines.setdefault(tok.start[0], []).append(tok.string)
+    return {n: " ".join(t) for n, t in lines.items()}
+
+
+def test_the_core_names_no_renderer_feature():
+    """The wavefront core schedules; what a renderer does at a vertex (debias, reuse, the cache target) is its
+    vertex program's (nrc.render.wavefront.program): the core's code names such a feature on at most 6 lines."""
+    hits = [f"{p.name}:{n}: {line}" for p in sorted(CORE.glob("*.py")) for n, line in code_lines(p).items()
+            if CORE_FEATURES.search(line)]
+    assert len(hits) <= 6, "\n".join(hits)
+
+
+def test_the_feature_scan_sees_code_but_not_docstrings(tmp_path):
+    """The scan above counts a feature named in code, not in a docstring or a comment."""
+    f = tmp_path / "m.py"
+    f.write_text('"""debias here is prose."""\nx = 1  # reuse in a comment\ny = cache_target = 2\n')
+    found = [n for n, line in code_lines(f).items() if CORE_FEATURES.search(line)]
+    assert found == [3]

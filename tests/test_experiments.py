@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from conftest import CONF_DIR
+from conftest import CONF_DIR, load_script
 
 # the thesis experiments (multiruns with a report); bench_* are single-run benchmark configs
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml") if not p.stem.startswith("bench_"))
@@ -117,7 +117,8 @@ def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
         metrics = {"time_render_s": 2.0} if renderer == "pt" else {
             "frame_times_s": [5.0, 1.0, 1.0], "loss_per_frame": [3.0, 2.0, 1.0], "time_train_s": [1, 0.5, 0.5]}
         fake_run(root / exp / str(i), c, renderer, img, metrics, {"renderer": renderer})
-    assert report.main(["nrc_vs_pt", "--root", str(root), "--docs", str(tmp_path / "docs")]) == 0
+    cli = load_script("experiments_report")
+    assert cli.main(["nrc_vs_pt", "--root", str(root), "--docs", str(tmp_path / "docs")]) == 0
     md = (tmp_path / "docs" / "results" / "nrc_vs_pt.md").read_text()
     rows: dict[str, list[str]] = {}
     for line in md.splitlines():  # the first (medium pixels) table
@@ -134,8 +135,8 @@ def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
     assert "python -m nrc +experiment=nrc_vs_pt_pt" in md
     # results.md: the intro, speed sections (missing here) and the reports
     (tmp_path / "intro.md").write_text("Hand-written intro.")
-    assert report.main(["nrc_vs_pt", "--root", str(root), "--docs", str(tmp_path / "docs"), "--results",
-                        "--intro", str(tmp_path / "intro.md")]) == 0
+    assert cli.main(["nrc_vs_pt", "--root", str(root), "--docs", str(tmp_path / "docs"), "--results",
+                     "--intro", str(tmp_path / "intro.md")]) == 0
     results = (tmp_path / "docs" / "results.md").read_text()
     # the hand-written page linked, not copied; each report linked to its own page
     assert "intro.md) (hand-written)" in results and "Hand-written intro." not in results

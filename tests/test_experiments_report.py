@@ -8,6 +8,7 @@ import json
 
 import pytest
 
+from conftest import load_script
 from nrc.evaluation import experiments as ex
 
 BEFORE = "# A project\n\nHand-written text, 1.7x and all.\n\n![a figure](docs/images/clouds.png)\n\n*Its caption.*\n"
@@ -102,7 +103,7 @@ def test_results_rewrites_the_readme_block_only_and_is_idempotent(docs, tmp_path
     path.write_text(readme())
     args = ["batch_filters", "--results", "--docs", str(docs), "--root", str(tmp_path / "none"),
             "--intro", str(tmp_path / "no_intro.md"), "--readme", str(path)]
-    assert ex.main(args) == 0
+    assert load_script("experiments_report").main(args) == 0
     text = path.read_text()
     assert text.startswith(BEFORE) and text.endswith(AFTER) and "9.4x" not in text
     for name in ("crossover", "clouds", "nrc_vs_pt", "sun"):
@@ -120,7 +121,7 @@ def test_results_rewrites_the_readme_block_only_and_is_idempotent(docs, tmp_path
     generated = text[len(BEFORE):-len(AFTER)].splitlines()
     assert len(generated) > 10 and not any(line.startswith(("+", "-", "#")) for line in generated)
     capsys.readouterr()
-    assert ex.main(args) == 0
+    assert load_script("experiments_report").main(args) == 0
     assert path.read_text() == text and "generated figure captions unchanged" in capsys.readouterr().out
 
 
@@ -128,8 +129,8 @@ def test_a_missing_marker_is_one_error_line(docs, tmp_path):
     path = tmp_path / "README.md"
     path.write_text(readme(names=("crossover", "clouds", "nrc_vs_pt")))
     with pytest.raises(SystemExit) as e:
-        ex.main(["batch_filters", "--results", "--docs", str(docs), "--root", str(tmp_path / "none"),
-                 "--readme", str(path)])
+        load_script("experiments_report").main(["batch_filters", "--results", "--docs", str(docs),
+                                                 "--root", str(tmp_path / "none"), "--readme", str(path)])
     msg = str(e.value)
     assert msg.startswith("experiments_report: README.md: no line `<!-- generated: scripts/experiments_report.py "
                           "--results: sun -->`") and "\n" not in msg
@@ -157,7 +158,7 @@ def test_a_report_without_runs_keeps_its_committed_markdown(tmp_path):
     (tmp_path / "docs" / "results").mkdir(parents=True)
     kept = tmp_path / "docs" / "results" / "batch_filters.md"
     kept.write_text("measured table")
-    assert ex.main(["batch_filters", "--docs", str(tmp_path / "docs"), "--root", str(tmp_path / "none")]) == 0
+    assert load_script("experiments_report").main(["batch_filters", "--docs", str(tmp_path / "docs"), "--root", str(tmp_path / "none")]) == 0
     assert kept.read_text() == "measured table"
 
 

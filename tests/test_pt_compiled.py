@@ -5,12 +5,14 @@ eager backend and Mitsuba 3; its component-form building blocks at their owners 
 
 import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from conftest import hard_rays, spike_grid, unit
+from conftest import REPO, hard_rays, spike_grid, unit
+from test_architecture import imports
 from test_pt import make
 from nrc.errors import ConfigError
 from nrc.transport.light_sampling import LightSampler, LightTable
@@ -279,9 +281,28 @@ def test_the_step_imports_only_what_its_aot_key_hashes():
 
     code = "import sys, nrc.render.wavefront.step; print(' '.join(m for m in sys.modules if m.startswith('nrc.')))"
     mods = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    allowed = tuple("nrc." + d.replace("/", ".") for d in STEP_SOURCES) + ("nrc.errors", "nrc.io")
+    allowed = tuple("nrc." + d.removesuffix(".py").replace("/", ".") for d in STEP_SOURCES) + ("nrc.errors", "nrc.io")
     stray = [m for m in mods if m != "nrc.render" and not any(m == a or m.startswith(a + ".") for a in allowed)]
     assert "nrc.render.wavefront.step" in mods and not stray, stray
+    # the renderers' vertex programs (files of STEP_SOURCES) import only from STEP_SOURCES too
+    for d in STEP_SOURCES:
+        if d.endswith(".py"):
+            for target in imports(REPO / "nrc" / d):
+                if target.startswith("nrc"):
+                    assert any(target == a or target.startswith(a + ".") for a in allowed), (d, target)
+
+
+def test_every_vertex_program_is_in_the_aot_key():
+    """The vertex programs and hooks the renderers give the step are defined in files the AOT key hashes."""
+    import inspect
+
+    from nrc.render.radiance_caching.vertex import NRCVertex
+    from nrc.render.reuse import ReuseHook
+    from nrc.render.wavefront.machine import STEP_SOURCES
+
+    for cls in (NRCVertex, ReuseHook):
+        rel = Path(inspect.getfile(cls)).resolve().relative_to(REPO / "nrc").as_posix()
+        assert any(rel == d or rel.startswith(d + "/") for d in STEP_SOURCES), rel
 
 
 def test_one_machine_serves_every_scene_of_a_structure():

@@ -15,9 +15,9 @@ from nrc.camera import Camera
 from nrc.errors import ConfigError
 from nrc.render.pt import PathTracer, PathTracerSettings
 from nrc.render.radiance_caching import NRCRenderer
-from nrc.render.wavefront import reuse as reuse_module
-from nrc.render.wavefront.reuse import (DistanceReuse, ExtinctionTable, ReservoirReuse, Reservoirs, ReuseSettings,
-                                        VertexRecord)
+from nrc.render.reuse import (DistanceReuse, ExtinctionTable, ReservoirReuse, Reservoirs, ReuseSettings,
+                              VertexRecord)
+from nrc.render.reuse import reservoirs as reuse_module
 from nrc.scene import load_scene
 from nrc.transport.light_sampling import LightSampler, luminance3
 from nrc.transport.phase import hg_pdf
@@ -36,7 +36,7 @@ def _vertices(scene, seed: int = 1) -> VertexRecord:
     g = torch.Generator().manual_seed(seed)
     o, d = cam.generate_rays(torch.arange(n), torch.rand(n, 2, generator=g))
     t0, t1 = scene.grid.box.intersect(o, d)
-    rec = VertexRecord.empty(n, 1, 1.0, False, torch.device("cpu"))
+    rec = VertexRecord.empty(n, 1, 1.0, torch.device("cpu"))
     rec.x[:] = o + d * (t0 + (t1 - t0) * torch.rand(n, generator=g))[:, None]
     rec.d[:], rec.beta[:] = d, 1.0
     rec.valid[:] = t1 > t0
@@ -184,7 +184,7 @@ def _single_scattering(scene, lights: LightSampler, jitters: int = 6, steps: int
             ta = ta.clamp(min=0.0)
             h = ((tb - ta) / steps).clamp(min=0.0)
             for k in range(steps):
-                rec = VertexRecord.empty(n, 1, 1.0, False, torch.device("cpu"))
+                rec = VertexRecord.empty(n, 1, 1.0, torch.device("cpu"))
                 rec.x[:] = o + d * (ta + (k + 0.5) * h)[:, None]
                 rec.d[:], rec.valid[:] = d, tb > ta
                 light = luminance3(_exact(lights, rec, scene.g).unbind(-1))

@@ -25,6 +25,15 @@ def sve():
     return speed_vs_error
 
 
+@pytest.fixture(scope="module")
+def cli():
+    """scripts/speed_vs_error.py, the command line."""
+    spec = importlib.util.spec_from_file_location("speed_vs_error_cli", REPO / "scripts" / "speed_vs_error.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def nrc_available() -> bool:
     return (REPO / "conf" / "renderer" / "nrc.yaml").is_file()
 
@@ -62,7 +71,7 @@ def test_equal_time_ratio_and_crossover(sve):
 
 
 @pytest.mark.slow
-def test_smoke_two_configs_both_modes(sve, tmp_path):
+def test_smoke_two_configs_both_modes(sve, cli, tmp_path):
     second = ("nrc_tiny=renderer=nrc,encoding=triangle_oneblob,renderer.training.width=8,renderer.training.height=8,"
               "cache.network.n_neurons=16,cache.network.n_hidden_layers=2") if nrc_available() else \
         "pt_track=renderer=pt,transmittance=track_length"
@@ -76,7 +85,7 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
 
     render_reference(compose(TINY + ["scene.integrator.seed=1000000"]), tmp_path / "missing.exr", 8, 32,
                      progress=False)
-    assert sve.main(argv) == 0
+    assert cli.main(argv) == 0
     out = tmp_path / "out"
     rows = list(csv.DictReader(open(out / "speed_vs_error.csv")))
     names = {r["config"] for r in rows}
@@ -96,7 +105,7 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
     assert all(r["rel_mse_corr"] == pytest.approx(r["rel_mse"] - summary["meta"]["rel_mse_floor"])
                for r in summary["rows"])
     (out / "speed_vs_error.md").unlink()
-    assert sve.main(["--replot", str(out)]) == 0 and (out / "speed_vs_error.md").read_text() == md
+    assert cli.main(["--replot", str(out)]) == 0 and (out / "speed_vs_error.md").read_text() == md
     if nrc_available():
         assert len(summary["equal_time"]) == 1 and summary["equal_time"][0]["ratio_rel_mse"] > 0
         assert len(summary["equal_cpu_time"]) == 1 and summary["equal_cpu_time"][0]["ratio_rel_mse"] > 0
@@ -104,7 +113,7 @@ def test_smoke_two_configs_both_modes(sve, tmp_path):
 
 
 @pytest.mark.slow
-def test_denoised_twins_and_both_baselines(sve, tmp_path):
+def test_denoised_twins_and_both_baselines(sve, cli, tmp_path):
     """--denoise: every single-frame configuration and every accumulated point gets a `+oidn` twin whose time
     includes the denoise time, and NRC is compared with both the raw and the denoised path tracer (equal-time
     ratios and crossovers); every row has its HDR-FLIP."""
@@ -119,7 +128,7 @@ def test_denoised_twins_and_both_baselines(sve, tmp_path):
             "--configs", "pt", "--config", nrc, "--pt-spp", "1,2", "--repeats", "2", "--warmup", "1", "--frames", "2",
             "--mode", "both", "--acc-configs", "all", "--acc-max-frames", "2", "--acc-repeats", "2",
             "--acc-pt-spp", "1", "--denoise", "--quiet", "--threads", "1", *TINY]
-    assert sve.main(argv) == 0
+    assert cli.main(argv) == 0
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     acc = {(r["config"], r["frames"]): r for r in summary["rows"] if r["mode"] == "accumulate"}
     assert set(acc) == {(c, n) for c in ("pt", "pt+oidn", "nrc_tiny", "nrc_tiny+oidn") for n in (1, 2)}

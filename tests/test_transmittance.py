@@ -287,3 +287,54 @@ def test_relative_efficiency_on_a_varying_density():
         cost[name] = float(var) * st.lookups / (3 * n)
     assert cost["unbiased_raymarch"] < cost["residual_ratio"] < cost["ratio"] < cost["track_length"]
     assert np.isfinite(list(cost.values())).all()
+
+
+PLUGIN = '''"""A test's transmittance estimator: ratio tracking times a factor."""
+from nrc.transport.transmittance import ratio
+
+
+def estimate(grid, majorants, origin, direction, t0, t1, gen, scale=1.0, return_stats=False):
+    out = ratio.estimate(grid, majorants, origin, direction, t0, t1, gen, return_stats=return_stats)
+    return (out[0] * scale, out[1]) if return_stats else out * scale
+'''
+
+
+def test_a_new_estimator_is_one_file_and_one_yaml(tmp_path, monkeypatch):
+    """A module and a YAML (``estimator: module:function``) add an estimator that ``pt`` renders with: factor 1
+    reproduces ratio tracking's image exactly (the same draws on the queued shadow rays), factor 0 leaves the
+    environment alone."""
+    from nrc.config import compose
+    from nrc.render.pt import PathTracer
+    from nrc.scene import load_scene
+
+    (tmp_path / "plugin_estimator.py").write_text(PLUGIN)
+    (tmp_path / "scaled_ratio.yaml").write_text("name: scaled_ratio\nestimator: plugin_estimator:estimate\n"
+                                                "scale: 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    small = ["renderer=pt", "renderer.backend=eager", "scene.volume.procedural.resolution=16",
+             "scene.camera.width=24", "scene.camera.height=14", "scene.integrator.spp=2"]
+
+    def render(transmittance):
+        cfg = compose(small)
+        cfg.transmittance = transmittance
+        return PathTracer(load_scene(cfg.scene), cfg).render().image
+
+    plugin = OmegaConf.load(tmp_path / "scaled_ratio.yaml")
+    try:
+        same = render(plugin)
+        plugin.scale = 0.0
+        dark = render(plugin)
+        reference = render(OmegaConf.create({"name": "ratio"}))
+    finally:
+        ESTIMATORS.pop("scaled_ratio", None)
+    assert np.array_equal(same, reference)
+    assert dark.mean() < 0.9 * reference.mean()
+
+
+@pytest.mark.parametrize("spec, words", [("no_colon", "module:function"),
+                                         ("no_such_module_x:estimate", "cannot be imported"),
+                                         ("math:sqrt", "lacks the parameter")])
+def test_a_bad_estimator_entry_is_one_line(spec, words):
+    with pytest.raises(ConfigError, match=words):
+        make_transmittance({"name": "bad_one", "estimator": spec})
+    assert "bad_one" not in ESTIMATORS

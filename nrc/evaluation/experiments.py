@@ -34,12 +34,10 @@ experiments have no runs under ``--root`` keeps its committed Markdown.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
 import re
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -853,20 +851,8 @@ def assemble_results(docs: Path, intro: Path | None) -> Path:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("reports", nargs="*", default=list(REPORTS), help=f"any of {', '.join(REPORTS)}")
-    p.add_argument("--root", type=Path, default=REPO / "multirun" / "experiments")
-    p.add_argument("--docs", type=Path, default=REPO / "docs")
-    p.add_argument("--results", action="store_true",
-                   help="also assemble docs/results.md and rewrite the README's generated figure captions")
-    p.add_argument("--readme", type=Path, default=None,
-                   help="the README whose generated blocks --results rewrites (default: README.md beside --docs)")
-    p.add_argument("--intro", type=Path, default=REPO / "docs" / "results_intro.md",
-                   help="hand-written Markdown placed at the top of results.md (if it exists)")
-    p.add_argument("--conditions", default=CONDITIONS["text"],
-                   help="how the multiruns were run (threads, other jobs), stated with each report")
-    args = p.parse_args(argv)
+def run_reports(args: Any) -> Any:
+    """The reports of ``scripts/experiments_report.py`` (its options in ``args``); returns 0."""
     CONDITIONS["text"] = args.conditions
     for name in args.reports:
         if name not in BUILDERS:
@@ -900,6 +886,3 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{readme}: generated figure captions unchanged")
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

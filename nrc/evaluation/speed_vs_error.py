@@ -40,13 +40,11 @@ Default scene (``--preset disney``): the ``sun`` preset with the shared Disney c
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
 import math
 import platform
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -662,47 +660,9 @@ def get_reference(cfg, args, log) -> tuple[Path, Any]:
     return path, ref
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, default=REPO / "outputs" / "speed_vs_error")
-    p.add_argument("--preset", choices=PRESETS, default="disney", help="scene overrides applied first")
-    p.add_argument("--mode", choices=["single", "accumulate", "both"], default="both")
-    p.add_argument("--configs", default=",".join(DEFAULT_CONFIGS), help="comma-separated names (see CONFIGS)")
-    p.add_argument("--config", action="append", default=[], metavar="NAME=OV1,OV2", help="a custom configuration")
-    p.add_argument("--pt-spp", default="1,2,4,8", help="pt spp per frame (single mode)")
-    p.add_argument("--nrc-spp", default="1", help="NRC spp per frame (single mode)")
-    p.add_argument("--repeats", type=int, default=3, help="independent pt frames per spp (single mode)")
-    p.add_argument("--warmup", type=int, default=10, help="NRC training frames before scoring (single mode)")
-    p.add_argument("--frames", type=int, default=4, help="scored NRC frames (single mode)")
-    p.add_argument("--nrc-repeats", type=int, default=1,
-                   help="independent NRC runs per configuration (single mode; their scored frames are pooled: the "
-                        "spread between runs of the online training shows in the variance)")
-    p.add_argument("--acc-max-frames", type=int, default=256, help="most frames accumulated (accumulate mode)")
-    p.add_argument("--acc-budget-s", type=float, default=60.0, help="render seconds per sequence (accumulate)")
-    p.add_argument("--acc-repeats", type=int, default=2, help="independent sequences (accumulate mode)")
-    p.add_argument("--acc-pt-spp", type=int, default=4,
-                   help="spp per accumulated pt frame (a wavefront frame costs about the same at 1-4 spp)")
-    p.add_argument("--acc-nrc-spp", type=int, default=1, help="NRC spp per accumulated frame (accumulate mode)")
-    p.add_argument("--acc-configs", default="pt,nrc_hashgrid",
-                   help="configurations also run in accumulate mode (comma-separated; 'all' for every one)")
-    p.add_argument("--nrc-overrides", default=",".join(NRC_DEFAULTS),
-                   help="Hydra overrides applied to every nrc configuration before its own (comma-separated)")
-    p.add_argument("--denoise", action="store_true",
-                   help="also score every configuration denoised by OIDN (single frames; accumulated: the running "
-                        "mean at each point), time + denoise time")
-    p.add_argument("--reference", type=Path, default=None)
-    p.add_argument("--ref-spp", type=int, default=512)
-    p.add_argument("--ref-chunk", type=int, default=64)
-    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
-    p.add_argument("--skip-missing", action="store_true", default=True,
-                   help="skip configurations whose renderer is not available (default)")
-    p.add_argument("--progress", action="store_true", help="progress bar for a reference render")
-    p.add_argument("--quiet", action="store_true")
-    p.add_argument("--replot", type=Path, default=None, metavar="DIR",
-                   help="only rewrite the tables and plot of DIR/summary.json (no rendering)")
-    args, overrides = p.parse_known_args(argv)
-    if args.replot:
-        return replot(args.replot)
+def run(args: Any, overrides: list[str], argv: list[str]) -> int:
+    """The measurement of ``scripts/speed_vs_error.py`` (its options in ``args``, scene overrides after the
+    preset's in ``overrides``; ``argv`` is recorded in the summary)."""
     args.pt_spp = [int(s) for s in args.pt_spp.split(",")]
     args.nrc_spp = [int(s) for s in args.nrc_spp.split(",")]
     args.scene_overrides = preset(args.preset) + overrides
@@ -745,7 +705,7 @@ def main(argv: list[str] | None = None) -> int:
             "ref_spp": ref.attrs.get("spp"), "rel_mse_floor": ref.rel_mse_floor,
             "rel_mse_floor_medium": ref.rel_mse_floor_medium, "medium_pixels": int(mask.sum()),
             "baseline": baseline, "skipped": skipped, "nrc_overrides": args.nrc_overrides,
-            "git": code_version(), "argv": sys.argv[1:] if argv is None else argv,
+            "git": code_version(), "argv": argv,
             "machine": f"{platform.machine()}, {_cpu_count()} cores, torch {torch.__version__} "
                        f"({torch.get_num_threads()} threads)",
             "wall_time_s": time.perf_counter() - start,
@@ -804,6 +764,3 @@ def _cpu_count() -> int:
 
     return os.cpu_count() or 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

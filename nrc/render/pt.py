@@ -18,7 +18,7 @@ Estimator (per camera sample; SCENE.md conventions):
 * With ``renderer.reuse.mode`` ``spatial`` or ``spatiotemporal`` the image is rendered as ``spp`` passes of one
   sample per pixel (sample ``j`` of every pixel in pass ``j``, the same paths as without reuse), and the first
   vertex's next-event estimate of each pass is made by reservoir reuse across the pass's pixels and, for
-  ``spatiotemporal``, from the previous pass (a static camera: :mod:`nrc.render.wavefront.reuse`).
+  ``spatiotemporal``, from the previous pass (a static camera: :mod:`nrc.render.reuse`).
 
 Execution: the shared transport core (:mod:`nrc.render.wavefront`) -- the same step code for
 ``renderer.backend=eager`` and ``compiled`` (``auto`` chooses, see :mod:`nrc.render.wavefront.setup`). A fixed
@@ -45,10 +45,11 @@ from tqdm import tqdm
 from nrc.config import ConfigReader
 from nrc.render.result import RenderResult
 from nrc.render.wavefront import BACKENDS, build_core, camera_paths
-from nrc.render.wavefront.driver import Wavefront
+from nrc.render.reuse import ReuseSettings, VertexRecord, make_reuse
+from nrc.render.wavefront.driver import Queues, Wavefront
 from nrc.render.wavefront.machine import compiled_graphs
+from nrc.render.wavefront.program import Collector, VertexProgram
 from nrc.render.wavefront.step import RussianRoulette
-from nrc.render.wavefront.reuse import ReuseSettings, VertexRecord, make_reuse
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSamplingSettings
 from nrc.transport.rng import path_key, uniforms
@@ -92,12 +93,17 @@ class PathTracerSettings:
     """``reuse.mode`` (``none`` | ``spatial`` | ``spatiotemporal``), ``neighbors``, ``radius``, ``history``,
     ``defer_g``, ``target``, ``mis``, ``domain`` (``light`` | ``distance``), ``distance_candidates``,
     ``distance_steps``: reservoir
-    reuse at the first vertex or along the camera ray (nrc.render.wavefront.reuse)."""
+    reuse at the first vertex or along the camera ray (nrc.render.reuse)."""
 
     @property
     def roulette(self) -> RussianRoulette | None:
         """The throughput roulette the core runs (``None``: off)."""
         return RussianRoulette(self.rr_start, self.rr_max_survival) if self.russian_roulette else None
+
+    @property
+    def inline_shadows(self) -> bool:
+        """Compiled, with ratio tracking: shadow rays inside the step (:func:`nrc.render.wavefront.build_core`)."""
+        return True
 
     @classmethod
     def from_config(cls, renderer: Any) -> PathTracerSettings:
@@ -141,11 +147,7 @@ class PathTracer:
         self.lights = st.light_sampling.sampler(scene)
         self.spp = scene.integrator.spp
         self.max_scatter = scene.integrator.max_scatter
-        self.core = build_core(scene.grid, self.lights, scene.albedo, scene.g, self.max_scatter, self.transmittance,
-                               st.brick, st.free_flight, st.backend, st.steps_per_call, st.compile_min_samples,
-                               st.roulette,
-                               point_lights=st.light_sampling.equiangular_points(scene),
-                               reuse_vertex=st.reuse.vertex(scene.g), reuse_light_only=st.reuse.light_only)
+        self.core = build_core(scene, self.transmittance, st, VertexProgram(hooks=st.reuse.hooks(scene.g)))
         self.majorants = self.core.majorants
 
     def _camera_paths(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -168,11 +170,7 @@ class PathTracer:
                    mininterval=1.0)
         start = time.perf_counter()
         reuse_stats: dict[str, list] = {}
-        if self.settings.reuse.mode == "none":
-            wf = self._wavefront(machine, gen)
-            wf.run(total, self._camera_paths, image, on_done=bar.update)
-        else:
-            wf = self._render_passes(machine, gen, image, bar, on_pass, reuse_stats)
+        wf = self._render_passes(machine, gen, image, bar, on_pass, reuse_stats)
         elapsed = time.perf_counter() - start
         bar.close()
         img = (image / self.spp).reshape(cam.height, cam.width, 3)
@@ -207,24 +205,27 @@ class PathTracer:
     def _wavefront(self, machine: Any, gen: torch.Generator, record: VertexRecord | None = None) -> Wavefront:
         """A wavefront of the core's machine with its shadow and equi-angular queues (drawing from ``gen``);
         ``record``: the reuse vertices are recorded into it."""
-        return Wavefront(machine, self.core.inputs, self.lights, self.slots,
-                         self.core.shadow_queue(machine, self.shadow_batch, gen), None,
-                         self.core.equiangular_queue(self.shadow_batch, gen), reuse=record)
+        queues = Queues(self.core.shadow_queue(machine, self.shadow_batch, gen),
+                        self.core.equiangular_queue(self.shadow_batch, gen))
+        return Wavefront(machine, self.core.inputs, self.lights, self.slots, queues, Collector(watchers=(record,)))
 
     def _render_passes(self, machine: Any, gen: torch.Generator, image: torch.Tensor, bar: Any, on_pass: Any,
                        stats: dict[str, list]) -> Wavefront:
-        """The ``spp`` one-sample passes of a render with reuse (module docstring); returns the last pass's
-        wavefront with the counters of all of them."""
-        cam, spp, st = self.scene.camera, self.spp, self.settings
+        """The render: one pass of every sample, or with reuse ``spp`` passes of one sample per pixel (module
+        docstring), each followed by the reuse pass; returns the last pass's wavefront with the counters of all."""
+        cam, spp, st, g = self.scene.camera, self.spp, self.settings, self.scene.g
         n = cam.num_pixels
-        reuse = make_reuse(st.reuse, self.scene.g, 1, self.scene.grid, self.scene.albedo)
+        reuse = make_reuse(st.reuse, g, 1, self.scene.grid, self.scene.albedo)
+        passes = 1 if reuse is None else spp
         counts: dict[str, int] = {}
         timers: dict[str, float] = {}
         wf = None
-        for j in range(spp):
-            rec = None if st.reuse.light_only else \
-                VertexRecord.empty(n, st.reuse.vertex(self.scene.g), self.scene.albedo, False, self.device)
+        for j in range(passes):
+            rec = st.reuse.record(n, g, self.scene.albedo, self.device)
             wf = self._wavefront(machine, gen, rec)
+            if reuse is None:
+                wf.run(n * spp, self._camera_paths, image, on_done=bar.update)
+                return wf
             one = torch.zeros_like(image)
             wf.run(n, lambda r, j=j: self._camera_paths(r * spp + j), one, on_done=bar.update)
             contribution, s = reuse.frame(rec, cam, self.lights, self.transmittance, self.scene.grid,

@@ -60,7 +60,7 @@ class FrameLog:
                 self.writer.add_scalar("error/flicker", value, frame)
             elif key in LIGHT_SCALARS and value is not None:
                 self.writer.add_scalar(f"light/{key}", value, frame)
-            elif key.startswith("reuse_") and value is not None:  # reservoir reuse counters (wavefront/reuse.py)
+            elif key.startswith("reuse_") and value is not None:  # reservoir reuse counters (nrc/render/reuse)
                 self.writer.add_scalar(f"reuse/{key[6:]}", value, frame)
             elif key.startswith("debias_") and value is not None:  # the control variate (debias.py)
                 self.writer.add_scalar(f"debias/{key[7:]}", value, frame)

@@ -7,7 +7,7 @@ estimation at every real scattering vertex (one light chosen by ``renderer.light
 by ratio tracking in the step or the configured estimator), phase sampling with MIS against the environment. The NRC part of the
 step is its vertex: the termination rule, the training records and the cache query. With ``renderer.reuse`` the
 render paths' first vertex is recorded instead of estimating its direct light, which the renderer's reuse pass
-adds (:mod:`nrc.render.wavefront.reuse`; a path that terminates there into the cache is recorded only with
+adds (:mod:`nrc.render.reuse`; a path that terminates there into the cache is recorded only with
 ``cache_target=indirect``, whose terminating vertices estimate their direct light).
 
 Cache termination (:mod:`nrc.render.radiance_caching.termination`) at a real scattering vertex ``m``: the path stops
@@ -61,10 +61,9 @@ from torch import Tensor
 from nrc.camera import Camera
 from nrc.transport.rng import RandomSource
 from nrc.render.radiance_caching.settings import NRCSettings
+from nrc.render.radiance_caching.vertex import NRCCollector, NRCVertex
 from nrc.render.wavefront import build_core, camera_paths
-from nrc.render.wavefront.driver import Harvest, Wavefront
-from nrc.render.wavefront.reuse import VertexRecord
-from nrc.render.wavefront.step import NRCRule
+from nrc.render.wavefront.driver import Queues, Wavefront
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSampler
 from nrc.transport.rng import path_key
@@ -148,21 +147,17 @@ class NRCPathTracer:
     def __init__(self, scene: Scene, transmittance: object, settings: NRCSettings) -> None:
         st, tr = settings, settings.training
         self.scene = scene
+        self.settings = st
         self.device = scene.device
         self.transmittance = transmittance
-        self.termination = st.termination
         self.V = tr.records_per_path
         self.extra_vertices = tr.extra_vertices
-        self.unbiased_max_vertices = tr.unbiased_max_vertices  # unbiased training paths end in the cache there (0: never)
         self.slots = st.slots
         self.shadow_batch = st.shadow_batch
         self.cache_target = st.cache_target
-        self.light_sampling = st.light_sampling
-        self.reuse_vertex = st.reuse.vertex(scene.g)  # render paths' vertex recorded for reservoir reuse (0: none)
-        # reuse.domain=distance: that vertex's direct light is all the reuse pass's, which needs no record
-        self.reuse_light_only = st.reuse.light_only
         self.debias = st.debias.enabled  # renderer.debias: render paths may go on past their cache termination (q per frame)
-        self._core_args = (st.brick, st.free_flight, st.backend, st.steps_per_call, st.compile_min_samples, st.roulette)
+        # the vertex program (termination rule, training records, debias; reservoir reuse's hook)
+        self.program = NRCVertex(st, hooks=st.reuse.hooks(scene.g))
         self._cores: dict = {}
         self.core = self._core(RandomSource.counter_uniforms)
         self.frames = 1  # frames the renderer will trace (backend=auto weighs a compile against all of them)
@@ -171,13 +166,7 @@ class NRCPathTracer:
 
     def _core(self, uniforms):
         if uniforms not in self._cores:
-            s = self.scene
-            self._cores[uniforms] = build_core(
-                s.grid, self.light_sampling.sampler(s), s.albedo, s.g, s.integrator.max_scatter,
-                self.transmittance, *self._core_args, nrc=NRCRule(self.termination.rule, self.V, self.cache_target, self.debias),
-                termination=self.termination, uniforms=uniforms, inline_shadows=False,
-                point_lights=self.light_sampling.equiangular_points(s), reuse_vertex=self.reuse_vertex,
-                reuse_light_only=self.reuse_light_only, unbiased_cap=self.unbiased_max_vertices)
+            self._cores[uniforms] = build_core(self.scene, self.transmittance, self.settings, self.program, uniforms)
             self._cores[uniforms].warm_fraction = 1 / 12  # see Core.warm_fraction
         return self._cores[uniforms]
 
@@ -201,6 +190,8 @@ class NRCPathTracer:
         else:
             never = torch.zeros(n, dtype=torch.bool, device=dev)
         F, I = camera_paths(layout, cam, self.scene.grid, pix, jitter, key)
+        F[layout.f("x_prev")] = F[layout.f("o")]
+        I[layout.i("rec")] = -1
         I[layout.i("dest")] = torch.where(is_train, discard, pix)
         I[layout.i("pid")] = ids
         I[layout.i("extra")] = torch.where(is_train, self.extra_vertices, 0)
@@ -227,17 +218,17 @@ class NRCPathTracer:
             n_rows += ps.n_render
         acc = torch.zeros(n_rows, 3, device=dev)
         machine, self.backend, self.backend_reason = core.choose(total * self.frames)
-        hv = Harvest(n_pixels, ps.n_render, torch.zeros(ps.n_train * V, 3, device=dev),
-                     torch.zeros(ps.n_train * V, 3, device=dev),
-                     torch.zeros(ps.n_train * V, dtype=torch.bool, device=dev),
-                     torch.zeros(ps.n_train, dtype=torch.bool, device=dev), discard + 1 if indirect else None,
-                     debias_q=debias_q if self.debias else 0.0, suffix_base=suffix_base, debias_indirect=indirect)
-        shadow = core.shadow_queue(machine, self.shadow_batch, rng.generator)
-        rec = VertexRecord.empty(ps.n_render, self.reuse_vertex, self.scene.albedo, indirect, dev,
-                                 debias_q if self.debias else 0.0) \
-            if self.reuse_vertex and not self.reuse_light_only else None
-        wf = Wavefront(machine, core.inputs_for(lights, debias_q), lights, self.slots, shadow, hv,
-                       core.equiangular_queue(self.shadow_batch, rng.generator), reuse=rec)
+        rec = self.settings.reuse.record(ps.n_render, self.scene.g, self.scene.albedo, dev)
+        hv = NRCCollector(n_pixels, ps.n_render, V, torch.zeros(ps.n_train * V, 3, device=dev),
+                          torch.zeros(ps.n_train * V, 3, device=dev),
+                          torch.zeros(ps.n_train * V, dtype=torch.bool, device=dev),
+                          torch.zeros(ps.n_train, dtype=torch.bool, device=dev), discard + 1 if indirect else None,
+                          debias_q=debias_q if self.debias else 0.0, suffix_base=suffix_base,
+                          debias_indirect=indirect, watchers=(rec,))
+        queues = Queues(core.shadow_queue(machine, self.shadow_batch, rng.generator),
+                        core.equiangular_queue(self.shadow_batch, rng.generator))
+        frame = {"debias_q": debias_q} if self.debias else {}
+        wf = Wavefront(machine, core.inputs_for(lights, **frame), lights, self.slots, queues, hv)
         layout = machine.step.layout
         wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, discard), acc)
         counts = dict(wf.counts)

@@ -61,7 +61,7 @@ from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 from nrc.transport.rng import RandomSource
 from nrc.render.wavefront.machine import compiled_graphs
-from nrc.render.wavefront.reuse import make_reuse
+from nrc.render.reuse import make_reuse
 from nrc.render.radiance_caching.training_set import (auto_training_size, frame_records, medium_pixel_mask,
                                                       training_positions, training_targets)
 from nrc.scene import Scene, animated_scene, turned_suns

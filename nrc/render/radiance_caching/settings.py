@@ -14,7 +14,7 @@ from nrc.config import ConfigReader
 from nrc.errors import ConfigError
 from nrc.render.radiance_caching.debias import DebiasSettings
 from nrc.render.radiance_caching.termination import Termination
-from nrc.render.wavefront.reuse import ReuseSettings
+from nrc.render.reuse import ReuseSettings
 from nrc.render.wavefront.step import RussianRoulette
 from nrc.scene import ANIMATIONS
 from nrc.transport.light_sampling import LightSamplingSettings
@@ -61,7 +61,7 @@ class NRCSettings:
     termination: Termination
     cache_target: str  # full | indirect (nrc.render.radiance_caching.paths)
     light_sampling: LightSamplingSettings  # light_selection, ris.candidates, point_light_sampling
-    reuse: ReuseSettings  # reservoir reuse at the render paths' first vertex (nrc.render.wavefront.reuse)
+    reuse: ReuseSettings  # reservoir reuse at the render paths' first vertex (nrc.render.reuse)
     debias: DebiasSettings  # the cache as a control variate (nrc.render.radiance_caching.debias)
     training: TrainingSettings
     inference_batch: int
@@ -75,6 +75,12 @@ class NRCSettings:
     reference: str | None
     resume: str | None
     roulette: RussianRoulette | None = None  # throughput roulette of the long paths (unbiased training paths, suffixes)
+
+    @property
+    def inline_shadows(self) -> bool:
+        """Shadow rays are always queued for the estimator (NRC's short frames wait on the longest chain of step
+        calls; :func:`nrc.render.wavefront.build_core`)."""
+        return False
 
     @classmethod
     def from_config(cls, renderer: Any) -> NRCSettings:

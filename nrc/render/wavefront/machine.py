@@ -123,16 +123,19 @@ def compiled_graphs() -> int:
     return graphs + _aot_built
 
 
-# The packages whose code the traced step runs (tests/test_pt_compiled.py checks that the step's imports stay in
-# them): an edit to any of their files makes new AOT packages; a stale package would run the old code unnoticed.
-STEP_SOURCES = ("render/wavefront", "transport", "volume")
+# The packages and files whose code the traced step runs (tests/test_pt_compiled.py checks that the step's imports
+# stay in them), the renderers' vertex programs among them (nrc.render.wavefront.program): an edit to any of these
+# files makes new AOT packages; a stale package would run the old code unnoticed.
+STEP_SOURCES = ("render/wavefront", "render/radiance_caching/vertex.py", "render/reuse/hook.py", "transport",
+                "volume")
 
 
 @functools.lru_cache(maxsize=1)
 def _package_sources() -> str:
     """A hash of the :data:`STEP_SOURCES` files."""
     root = Path(__file__).resolve().parents[2]
-    return source_hash([f for d in STEP_SOURCES for f in sorted((root / d).rglob("*.py"))])
+    return source_hash([f for d in STEP_SOURCES
+                        for f in ([root / d] if d.endswith(".py") else sorted((root / d).rglob("*.py")))])
 
 
 def aot_packages(step: Transport, steps_per_call: int, device: torch.device) -> tuple[Path, Path] | None:

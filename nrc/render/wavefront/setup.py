@@ -21,8 +21,9 @@ from nrc.errors import ConfigError
 from nrc.render.wavefront.driver import EquiangularQueue, ShadowQueue
 from nrc.render.wavefront.machine import (Machine, SceneInputs, compiled_machine_ready, failure_line,
                                           is_cached, machine_for, packages_cached)
+from nrc.render.wavefront.program import VertexProgram
 from nrc.render.wavefront.state import FLIGHT, Layout
-from nrc.render.wavefront.step import NRCRule, RussianRoulette, Transport, Uniforms
+from nrc.render.wavefront.step import StepOptions, Transport, Uniforms
 from nrc.transport.equiangular import EquiangularSampler
 from nrc.transport.light_sampling import LightSampler, LightTable
 from nrc.transport.rng import uniforms as counter_uniforms
@@ -74,7 +75,7 @@ class Core:
     compile_min_samples: int
     grid: Any = None
     bricks: Any = None
-    scalars: tuple = ()  # (albedo, g, max_scatter, roulette threshold, throughput roulette, termination, unbiased cap) for P
+    scalars: tuple = ()  # (albedo, g, max_scatter, roulette threshold, throughput roulette) for P
     last_startup_s: float = 0.0  # compile or cache-load seconds spent by the last choose()
     point_lights: tuple = ()  # sampled equi-angularly along segments (left out of the step's light table)
     _equiangular: Any = None  # their EquiangularSampler, built by the first equiangular_queue()
@@ -84,12 +85,11 @@ class Core:
     # 30,784 paths), so from ~0.3 M paths x frames = 1/12 of its 4 M.
     warm_fraction: float = 0.25
 
-    def inputs_for(self, lights: LightSampler, debias_q: float = 0.0) -> SceneInputs:
-        """The scene inputs with other lights of the same structure (an animated sun) and the frame's debiasing
-        probability (``renderer.debias``): only ``P`` changes."""
-        albedo, g, max_scatter, thr, rr, termination, cap = self.scalars
-        P = self.step.params(self.grid, self.bricks, LightTable(lights), albedo, g, max_scatter, thr, rr,
-                             termination, debias_q, cap)
+    def inputs_for(self, lights: LightSampler, **frame: Any) -> SceneInputs:
+        """The scene inputs with other lights of the same structure (an animated sun) and the vertex program's
+        numbers of this frame (``frame``, e.g. ``renderer.debias``'s probability): only ``P`` changes."""
+        albedo, g, max_scatter, thr, rr = self.scalars
+        P = self.step.params(self.grid, self.bricks, LightTable(lights), albedo, g, max_scatter, thr, rr, **frame)
         return SceneInputs(P, self.inputs.density, self.inputs.majorant)
 
     def unsupported_reason(self) -> str | None:
@@ -146,41 +146,39 @@ class Core:
         return ShadowQueue(self.transmittance, self.grid, self.majorants, batch, gen)
 
 
-def build_core(grid: DensityGrid, lights: LightSampler, albedo: float, g: float, max_scatter: int,
-               transmittance: Any, brick: Any, free_flight: str, backend: str, steps_per_call: int,
-               compile_min_samples: int, rr: RussianRoulette | None = None, nrc: NRCRule | None = None,
-               termination: Any = None, uniforms: Uniforms = counter_uniforms, inline_shadows: bool = True,
-               point_lights: tuple = (), reuse_vertex: int = 0, reuse_light_only: bool = False,
-               unbiased_cap: int = 0) -> Core:
-    """The core for a scene and a renderer's settings (``nrc``: the termination rule and ``V``;
-    ``inline_shadows=False``: shadow rays always queued for the estimator; ``point_lights``: those sampled
-    equi-angularly, which ``lights`` must leave out; ``reuse_vertex``: the render paths' vertex whose next-event
-    estimate the reservoir reuse pass makes, 0 for none; ``reuse_light_only``: and all of its direct light, by light
-    sampling, ``reuse.domain=distance``)."""
-    if backend not in BACKENDS:
-        raise ConfigError(f"renderer.backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    for key, value, low in (("steps_per_call", steps_per_call, 1), ("compile_min_samples", compile_min_samples, 0)):
+def build_core(scene: Any, transmittance: Any, settings: Any, program: VertexProgram | None = None,
+               uniforms: Uniforms = counter_uniforms) -> Core:
+    """The core for a scene and a renderer's settings, passed whole (its ``brick``, ``free_flight``, ``backend``,
+    ``steps_per_call``, ``compile_min_samples``, ``roulette``, ``light_sampling`` and ``inline_shadows``:
+    ``False`` queues every shadow ray for the estimator), with the renderer's vertex program (default: ``pt``'s;
+    :mod:`nrc.render.wavefront.program`). Point lights sampled equi-angularly are left out of the step's lights.
+    """
+    st = settings
+    if st.backend not in BACKENDS:
+        raise ConfigError(f"renderer.backend must be one of {', '.join(BACKENDS)}, got {st.backend!r}")
+    for key, low in (("steps_per_call", 1), ("compile_min_samples", 0)):
+        value = getattr(st, key)
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ConfigError(f"renderer.{key} must be an integer >= {low}, got {value!r}")
-    majorants, tracking = wavefront_majorants(grid, brick, free_flight)
+    program = program if program is not None else VertexProgram()
+    grid, lights = scene.grid, st.light_sampling.sampler(scene)
+    albedo, g, max_scatter, rr = scene.albedo, scene.g, scene.integrator.max_scatter, st.roulette
+    majorants, tracking = wavefront_majorants(grid, st.brick, st.free_flight)
     bricks = BrickTables(tracking, majorants)
-    table = LightTable(lights)
     thr = roulette_threshold(transmittance)
-    layout = Layout(rows=1 + (nrc.records_per_path if nrc else 0), nrc=nrc is not None)
     # Compiled pt: ratio-tracking shadow rays inside the step (one step a call for every slot). Eager, and
     # compiled nrc: shadow rays queued for the estimator, whose batched loop runs wide; inside the step a path's
     # shadow steps lengthen the chain of calls a frame waits for, which dominates NRC's short frames
     # (160x90, 1 spp: trace 0.33 s inline, 0.25 s queued; pt 128x72 x 64 spp: 0.99 s inline, 1.9 s queued).
-    inline = transmittance.name == "ratio" and inline_shadows
-    step = Transport(layout, table, bricks.n_tables, inline, thr > 0, rr is not None, nrc, uniforms,
-                     sampler=lights, reuse_vertex=reuse_vertex, reuse_light_only=reuse_light_only)
-    eager_step = Transport(layout, table, bricks.n_tables, False, thr > 0, rr is not None, nrc, uniforms,
-                           sampler=lights, reuse_vertex=reuse_vertex, reuse_light_only=reuse_light_only) if inline else step
-    P = step.params(grid, bricks, table, albedo, g, max_scatter, thr, rr, termination, unbiased_cap=unbiased_cap)
+    inline = transmittance.name == "ratio" and st.inline_shadows
+    step = Transport(program, lights, bricks.n_tables, StepOptions(inline, thr > 0, rr is not None), uniforms)
+    eager_step = Transport(program, lights, bricks.n_tables, StepOptions(False, thr > 0, rr is not None),
+                           uniforms) if inline else step
+    P = step.params(grid, bricks, step.lights, albedo, g, max_scatter, thr, rr)
     inputs = SceneInputs.build(P, grid.density, bricks.flat)
-    return Core(step, eager_step, inputs, majorants, transmittance, grid.device, backend,
-                steps_per_call, compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr, termination, unbiased_cap),
-                point_lights=tuple(point_lights))
+    return Core(step, eager_step, inputs, majorants, transmittance, grid.device, st.backend, st.steps_per_call,
+                st.compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr),
+                point_lights=tuple(st.light_sampling.equiangular_points(scene)))
 
 
 def camera_paths(layout: Layout, camera: Any, grid: DensityGrid, pix: Tensor, jitter: Tensor,
@@ -193,8 +191,4 @@ def camera_paths(layout: Layout, camera: Any, grid: DensityGrid, pix: Tensor, ji
     F[layout.f("o")], F[layout.f("d")], F[layout.f("t")], F[layout.f("tmax")] = o.T, d.T, t0, t1
     F[layout.f("beta")] = 1.0
     I[layout.i("dest")], I[layout.i("key")], I[layout.i("flight")], I[layout.i("occupied")] = pix, key, FLIGHT, 1
-    if layout.nrc:
-        F[layout.f("x_prev")] = o.T
-        I[layout.i("rec_base")] = -1
-        I[layout.i("rec")] = -1
     return F, I

@@ -17,21 +17,16 @@ Fields (units: world units, radiance in linear RGB):
 ``ts, tse``  1, 1  shadow ray distance and end
 ``tr``       1     shadow ray's running transmittance (ratio tracking)
 ``csh``      3     shadow ray's contribution weight (light x phase x MIS x throughput), times ``tr`` at the end
-``L``        3R    radiance gathered per accumulator row (``R = 1`` for ``pt``, ``V + 1`` for ``nrc``)
-``spread``   1     (nrc) path spread of the ``spread`` termination rule
-``a0``       1     (nrc) spread at the first vertex
-``x_prev``   3     (nrc) previous vertex (the camera at first)
+``L``        3R    radiance gathered per accumulator row (``R``: the vertex program's ``rows``, 1 for ``pt``)
 ============ ===== =====================================================================================
 
 Integer fields: ``dest`` (accumulator row of row 0: the pixel, or a training path's discard row), ``key``
 and ``cnt`` (counter-based RNG), ``n`` (real scattering events), ``flight`` (one of ``DONE``, ``FLIGHT``,
 ``VERTEX``, ``QUERY``, ``ESCAPED``), ``shadow`` (0 none, 1 pending in the slot, 2 queued for an external
-estimator), ``occupied`` (holds an unharvested path), ``n_shadow_steps``; for ``nrc`` also ``pid`` (path
-id), ``rec_base`` (first training record of a training path, -1 for render paths), ``n_term`` (vertex at
-which the path terminates into the cache, 0 undecided), ``extra`` (vertices past the render stop),
-``never`` (never terminates: 1 a training path's unbiased suffix, :data:`CONTINUED` a render path that would have
-terminated into the cache and goes on as a path-traced suffix, ``renderer.debias``), ``rec`` (training record
-written at the last vertex, -1 none).
+estimator), ``occupied`` (holds an unharvested path), ``n_shadow_steps``.
+
+A renderer's vertex program (:mod:`nrc.render.wavefront.program`) adds its own fields after these (``nrc``: the
+termination rule's path spread, the training records' bookkeeping; :mod:`nrc.render.radiance_caching.vertex`).
 
 Memory: ``4 NF + 8 NI`` bytes a slot (136 for ``pt``, 268 for ``nrc`` with ``V = 4``).
 """
@@ -46,35 +41,16 @@ from torch import Tensor
 
 # flight states
 DONE, FLIGHT, VERTEX, QUERY, ESCAPED = 0, 1, 2, 3, 4
-# ``never`` of a render path continued past its cache termination (renderer.debias): its contributions from there
-# on go to accumulator row 1, the suffix row (the driver maps it to the sample's own row of the accumulator)
-CONTINUED = 2
 
 _FLOAT = [("o", 3), ("d", 3), ("t", 1), ("tmax", 1), ("beta", 3), ("pdf", 1), ("wi", 3), ("ts", 1), ("tse", 1),
           ("tr", 1), ("csh", 3)]
-_FLOAT_NRC = [("spread", 1), ("a0", 1), ("x_prev", 3)]
 _INT = ["dest", "key", "cnt", "n", "flight", "shadow", "occupied", "n_shadow_steps"]
-_INT_NRC = ["pid", "rec_base", "n_term", "extra", "never", "rec"]
-
-
-def just_continued(never_before: Tensor, never_after: Tensor) -> Tensor:
-    """Slots whose render path the vertex step between the two ``never`` values continued past its cache
-    termination (:data:`CONTINUED`, ``renderer.debias``)."""
-    return (never_after == CONTINUED) & (never_before != CONTINUED)
-
-
-def accumulator_row(rec_base: Tensor, n: Tensor, V: int, never: Tensor | None = None) -> Tensor:
-    """Accumulator row ``(S,)`` of each slot's current segment: a training path's ``min(n, V)`` (row 0 is its
-    discard row before the first vertex); for a render path 0 (its ``dest``), or 1 (its suffix row) once it is
-    :data:`CONTINUED` past its cache termination (``never`` given: ``renderer.debias``)."""
-    render = torch.zeros_like(n) if never is None else (never == CONTINUED).long()
-    return torch.where(rec_base >= 0, n.clamp(max=V), render)
 
 
 @dataclass
 class PathState:
     """The unpacked state: every attribute an ``(S,)`` tensor, a 3-tuple of them, or (``L``) a tuple of
-    ``R`` 3-tuples; ``nrc`` fields are ``None`` for ``pt``. See the module docstring for the meanings."""
+    ``R`` 3-tuples, and the vertex program's fields. See the module docstring for the meanings."""
 
     o: Any = None
     d: Any = None
@@ -88,9 +64,6 @@ class PathState:
     tr: Any = None
     csh: Any = None
     L: Any = None
-    spread: Any = None
-    a0: Any = None
-    x_prev: Any = None
     dest: Any = None
     key: Any = None
     cnt: Any = None
@@ -99,32 +72,38 @@ class PathState:
     shadow: Any = None
     occupied: Any = None
     n_shadow_steps: Any = None
-    pid: Any = None
-    rec_base: Any = None
-    n_term: Any = None
-    extra: Any = None
-    never: Any = None
-    rec: Any = None
+    # a vertex program's own fields are set as further attributes by Layout.unpack
 
 
 @dataclass(frozen=True)
 class Layout:
-    """Row layout of the packed state for ``rows`` accumulator rows (``nrc``: with the NRC fields)."""
+    """Row layout of the packed state for ``rows`` accumulator rows and a vertex program's extra fields
+    (``extra_float``: ``(name, width)`` pairs; ``extra_int``: names)."""
 
     rows: int = 1
-    nrc: bool = False
+    extra_float: tuple[tuple[str, int], ...] = ()
+    extra_int: tuple[str, ...] = ()
     _f: dict = field(default_factory=dict, compare=False, repr=False)
     _i: dict = field(default_factory=dict, compare=False, repr=False)
 
+    @classmethod
+    def of(cls, program: Any) -> Layout:
+        """The layout of a vertex program (:mod:`nrc.render.wavefront.program`)."""
+        return cls(program.rows, tuple(program.float_fields), tuple(program.int_fields))
+
     def __post_init__(self) -> None:
         pos = 0
-        for name, width in _FLOAT + [("L", 3 * self.rows)] + (_FLOAT_NRC if self.nrc else []):
+        for name, width in _FLOAT + [("L", 3 * self.rows)] + list(self.extra_float):
             self._f[name] = (pos, width)
             pos += width
         object.__setattr__(self, "nf", pos)
-        for k, name in enumerate(_INT + (_INT_NRC if self.nrc else [])):
+        for k, name in enumerate(_INT + list(self.extra_int)):
             self._i[name] = k
         object.__setattr__(self, "ni", len(self._i))
+
+    def has(self, name: str) -> bool:
+        """The layout holds field ``name``."""
+        return name in self._f or name in self._i
 
     def f(self, name: str) -> slice | int:
         """Row index (scalar field) or row slice (vector field) of float field ``name`` in ``F``."""

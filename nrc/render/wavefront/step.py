@@ -11,16 +11,12 @@ eagerly or ``torch.compile``'d (the same code; :mod:`nrc.render.wavefront.machin
     leaves the slot waiting at the vertex (``VERTEX``, ``o`` = the vertex); the continuation of the last
     allowed vertex that collides ends the path.
 :meth:`Transport.vertex` -- the slots waiting at a real collision (a few percent; the driver runs it on that
-    subset). ``nrc`` first applies the termination rule: a terminating path becomes a cache query
-    (``QUERY``), a training path records the vertex; with ``cache_target=indirect`` a terminating path still
-    requests next-event estimation, weighted 1 (light sampling alone). Then both renderers scatter:
-    throughput x albedo, a next-event request (one light chosen by the light table, uniformly, by power or by
-    resampling candidates (RIS);
-    its shadow ray starts in the slot, or is queued for a transmittance estimator that has no per-step form),
-    optional Russian roulette and the phase-sampled continuation. With ``renderer.debias`` a render path that would
-    terminate goes on with probability ``q`` instead (throughput ``/ q``, never terminating again), and the driver
-    records its cache query with the weight ``beta (1 - 1/q)``: the cache becomes a control variate (module
-    :mod:`nrc.render.radiance_caching.debias`).
+    subset). The renderer's vertex program (:mod:`nrc.render.wavefront.program`) decides first: whether the path
+    goes on (a path that ends here becomes a ``QUERY`` for the renderer), whether the vertex makes a next-event
+    estimate and with which throughput and MIS, and whether the next segment's escape counts the environment.
+    Then the step scatters: a next-event request (one light chosen by the light table, uniformly, by power or by
+    resampling candidates (RIS); its shadow ray starts in the slot, or is queued for a transmittance estimator
+    that has no per-step form), optional Russian roulette and the phase-sampled continuation.
 
 Scene inputs are tensors, never Python constants: ``P`` (float32 ``(n_params,)``: box, grid dimensions,
 density scale, albedo, g, limits, the brick tables' scalars, the lights' parameters; :meth:`Transport.params`),
@@ -43,8 +39,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from nrc.render.wavefront.state import (CONTINUED, DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState,
-                                       accumulator_row)
+from nrc.render.wavefront.program import VertexProgram
+from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState
 from nrc.transport.light_sampling import LightSampler, LightTable, power_heuristic, resample
 from nrc.transport.phase import hg_pdf, hg_sample_v3
 from nrc.transport.rng import uniforms as counter_uniforms
@@ -84,20 +80,17 @@ class RussianRoulette:
 
 
 @dataclass(frozen=True)
-class NRCRule:
-    """What the ``nrc`` vertex needs of the termination rule and the training set (structure only; the
-    numbers travel in ``P``)."""
+class StepOptions:
+    """The core's own switches of a step's structure (the renderer's are in its vertex program)."""
 
-    rule: str  # "count" | "spread"
-    records_per_path: int  # V
-    # "full": the cache holds all scattered radiance, a terminating path does no next-event estimation;
-    # "indirect": the cache holds the scattered radiance minus the direct light, and a terminating path adds
-    # next-event estimation by light sampling alone (no MIS: nothing continues to pick up its other half)
-    cache_target: str = "full"
-    # renderer.debias (nrc.render.radiance_caching.debias): a render path that would terminate into the cache goes
-    # on instead, with probability q (P's debias_q), as a path-traced suffix of throughput beta / q that never
-    # terminates again (never = CONTINUED); the driver queries the cache there with weight beta (1 - 1/q)
-    debias: bool = False
+    inline_shadow: bool
+    """Shadow rays by ratio tracking inside the step; ``False`` queues them (``shadow = 2``) for the configured
+    transmittance estimator."""
+    roulette: bool
+    """Ratio-tracking roulette on (its threshold is in ``P``)."""
+    russian_roulette: bool
+    """Throughput roulette on (its start and the survival cap ``q_max`` are in ``P``: a path from vertex ``start``
+    on survives with ``q = clamp(max throughput, 0.05, q_max)``, weight ``1 / q``)."""
 
 
 def _where3(m: Tensor, a: tuple, b: tuple) -> tuple:
@@ -108,64 +101,45 @@ class Transport:
     """The step functions for one structure (see the module docstring).
 
     Args:
-        layout: the state layout (``rows`` accumulator rows; NRC fields).
-        lights: the light table (structure; its values go into ``P``).
+        program: the renderer's vertex program (its state fields, rows, ``P`` numbers, random lanes, decision).
+        lights: the eager light sampler; its light table (structure; values in ``P``) is what the step samples,
+            except for lat-long maps, which the eager step samples with the sampler itself.
         n_tables: brick tables (1, or 2 with global free flights).
-        inline_shadow: shadow rays by ratio tracking inside the step; ``False`` queues them (``shadow = 2``)
-            for the configured transmittance estimator.
-        roulette: ratio-tracking roulette on (its threshold is in ``P``).
-        russian_roulette: throughput roulette on (its start and the survival cap ``q_max`` are in ``P``: a path
-            from vertex ``start`` on survives with ``q = clamp(max throughput, 0.05, q_max)``, weight ``1 / q``).
-        nrc: the termination rule and ``V`` for ``renderer=nrc``, ``None`` for ``pt``.
+        options: the core's switches (:class:`StepOptions`).
         uniforms: the random-number function ``(key, counter, lanes) -> lanes x (S,)`` (tests script it).
     """
 
-    def __init__(self, layout: Layout, lights: LightTable, n_tables: int, inline_shadow: bool, roulette: bool,
-                 russian_roulette: bool, nrc: NRCRule | None = None, uniforms: Uniforms = counter_uniforms,
-                 sampler: LightSampler | None = None, reuse_vertex: int = 0, reuse_light_only: bool = False) -> None:
-        if not lights.supported and sampler is None:
-            raise ValueError("lat-long environment maps need the eager light sampler (sampler=)")
-        self.sampler = None if lights.supported else sampler
-        self.layout, self.lights, self.n_tables = layout, lights, n_tables
-        self.inline_shadow, self.roulette, self.rr, self.nrc = inline_shadow, roulette, russian_roulette, nrc
+    def __init__(self, program: VertexProgram, lights: LightSampler, n_tables: int, options: StepOptions,
+                 uniforms: Uniforms = counter_uniforms) -> None:
+        self.program = program
+        self.lights = table = LightTable(lights)
+        self.sampler = None if table.supported else lights
+        self.layout, self.n_tables, self.options = Layout.of(program), n_tables, options
+        self.inline_shadow, self.roulette, self.rr = options.inline_shadow, options.roulette, options.russian_roulette
         self.uniforms = uniforms
-        # reservoir reuse (nrc.render.wavefront.reuse): render paths' vertex reuse_vertex (0: none) leaves its
-        # next-event estimate to the reuse pass, which the driver records the vertex for
-        self.reuse_vertex = int(reuse_vertex)
-        # reuse.domain=distance: the reuse pass estimates all of that vertex's direct light by light sampling, so the
-        # path's phase-sampled direction from it does not count the environment it reaches
-        self.reuse_light_only = bool(reuse_light_only) and self.reuse_vertex > 0
-        # vertex lanes: phase (2), then Russian roulette, the termination draw (nrc), the debias draw (nrc with
-        # renderer.debias), the light choice
+        # vertex lanes: phase (2), then Russian roulette, the program's, the light choice
         self.lane_rr = 4
-        self.lane_term = 4 + russian_roulette
-        self.debias = nrc is not None and nrc.debias
-        self.lane_debias = self.lane_term + (nrc is not None)
-        self.lane_light = self.lane_debias + self.debias
-        self.indirect_debias = self.debias and nrc.cache_target == "indirect"
-        m = lights.candidates
-        self.lanes = self.lane_light + (lights.lanes if lights.supported else 4 * m + (m > 1))
+        self.lane_program = 4 + self.rr
+        self.lane_light = self.lane_program + program.lanes
+        m = table.candidates
+        self.lanes = self.lane_light + (table.lanes if table.supported else 4 * m + (m > 1))
         names = ["lo", "lo", "lo", "hi", "hi", "hi", "dims", "dims", "dims", "scale", "albedo", "g", "max_scatter",
-                 "roulette", "rr_start", "min_vertices", "p_continue", "spread_c", "unbiased_cap"]
-        names += ["debias_q"] if self.debias else []
+                 "roulette", "rr_start", *program.param_names]
         names += ["rr_q_max"] if self.rr else []
         self.ix: dict[str, int] = {}
         for k, name in enumerate(names):
             self.ix.setdefault(name, k)
         self.ix["bricks"] = len(names)
         self.ix["lights"] = len(names) + BrickTables.PER_TABLE * n_tables
-        self.n_params = self.ix["lights"] + len(lights.values)
+        self.n_params = self.ix["lights"] + len(table.values)
 
     @property
     def structure(self) -> tuple[Any, ...]:
         """What the step's code depends on, as plain values (stable across processes; the persistent cache's
         marker is named from it)."""
         fn = self.uniforms
-        base = (self.layout.rows, self.layout.nrc, self.lights.structure, self.lights.supported, self.n_tables,
-                self.inline_shadow, self.roulette, self.rr, self.nrc, f"{fn.__module__}.{fn.__qualname__}")
-        if not self.reuse_vertex:
-            return base
-        return (*base, ("reuse", self.reuse_vertex, "light_only") if self.reuse_light_only else ("reuse", self.reuse_vertex))
+        return (self.program.structure, self.lights.structure, self.lights.supported, self.n_tables,
+                self.inline_shadow, self.roulette, self.rr, f"{fn.__module__}.{fn.__qualname__}")
 
     @property
     def key(self) -> tuple[Any, ...]:
@@ -175,25 +149,17 @@ class Transport:
 
     # ------------------------------------------------------------------ scene inputs
     def params(self, grid: Any, bricks: BrickTables, lights: LightTable, albedo: float, g: float,
-               max_scatter: int, roulette_threshold: float, rr: RussianRoulette | None,
-               termination: Any = None, debias_q: float = 0.0, unbiased_cap: int = 0) -> Tensor:
+               max_scatter: int, roulette_threshold: float, rr: RussianRoulette | None, **frame: Any) -> Tensor:
         """The scene's numbers as the step's ``P`` input (float32 on the grid's device; ``rr``: the throughput
-        roulette's start and survival cap; ``debias_q``: the probability that a render path goes on past its cache
-        termination, with ``renderer.debias``; ``unbiased_cap``: the vertex at which an unbiased training path
-        terminates into the cache after all, 0 for never)."""
+        roulette's start and survival cap; ``frame``: the vertex program's numbers that change from frame to
+        frame, :meth:`VertexProgram.param_values`)."""
         if lights.structure != self.lights.structure or bricks.n_tables != self.n_tables or \
                 lights.supported != self.lights.supported:
             raise ValueError("scene structure differs from the step's")
         vals = [*grid.box.lo.tolist(), *grid.box.hi.tolist(), *[float(n) for n in grid.shape],
                 float(grid.density_scale), float(albedo), float(g), float(max_scatter), float(roulette_threshold),
                 float(rr.start if rr is not None else 0)]
-        if termination is not None:
-            vals += [float(termination.min_vertices), float(termination.p_continue), float(termination.spread_c)]
-        else:
-            vals += [0.0, 0.0, 0.0]
-        vals.append(float(unbiased_cap))
-        if self.debias:
-            vals.append(float(debias_q))
+        vals += [float(v) for v in self.program.param_values(**frame)]
         if self.rr:
             vals.append(float(rr.max_survival if rr is not None else 1.0))
         vals += bricks.values + lights.values
@@ -205,9 +171,7 @@ class Transport:
 
     def row_of(self, s: PathState) -> Tensor | None:
         """Accumulator row ``(S,)`` that contributions of each slot's current segment go to (``None``: row 0)."""
-        if self.layout.rows == 1:
-            return None
-        return accumulator_row(s.rec_base, s.n, self.layout.rows - 1, s.never if self.debias else None)
+        return self.program.row(s)
 
     # ------------------------------------------------------------------ one tracking step
     def track(self, F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> tuple[Tensor, Tensor]:
@@ -285,47 +249,9 @@ class Transport:
         zero = torch.zeros_like(s.t)
         n_s = s.n + 1
         beta_s = tuple(b * albedo for b in s.beta)
-        go = torch.ones_like(s.n, dtype=torch.bool)  # the path scatters here (nrc: it does not terminate)
-        cont = torch.zeros_like(go)  # renderer.debias: a render path goes on past its cache termination here
-
-        if self.nrc is not None:
-            V = self.nrc.records_per_path
-            # the termination rule at vertex n_s (termination.py)
-            dist2 = sum((xa - pa) ** 2 for xa, pa in zip(x, s.x_prev))
-            first = n_s == 1
-            a0 = torch.where(first, dist2 / (4.0 * math.pi), s.a0)
-            spread = torch.where(first, zero, s.spread + torch.sqrt(dist2 / s.pdf.abs().clamp(min=1e-30)))
-            eligible = n_s.to(torch.float32) >= p[self.ix["min_vertices"]]
-            if self.nrc.rule == "count":
-                fire = eligible & (u[self.lane_term] >= p[self.ix["p_continue"]])
-            else:
-                fire = eligible & (spread * spread > p[self.ix["spread_c"]] * a0)
-            n_term = torch.where(fire & (s.n_term == 0) & (s.never == 0), n_s + s.extra, s.n_term)
-            # renderer.training.unbiased_max_vertices: an unbiased training path ends in the cache at that vertex
-            cap = p[self.ix["unbiased_cap"]]
-            capped = (s.never == 1) & (cap > 0) & (n_s.to(torch.float32) >= cap)
-            n_term = torch.where(capped & (n_term == 0), n_s, n_term)
-            terminate = (n_term > 0) & (n_s >= n_term)
-            is_train = s.rec_base >= 0
-            if self.debias:  # with probability q the render path goes on as a path-traced suffix
-                cont = terminate & ~is_train & (u[self.lane_debias] < p[self.ix["debias_q"]])
-                terminate = terminate & ~cont
-                n_term = torch.where(cont, torch.zeros_like(n_term), n_term)
-                s.never = torch.where(cont, torch.full_like(s.never, CONTINUED), s.never)
-            go = ~terminate
-            recorded = go & is_train & (n_s <= V)
-            beta_s = tuple(torch.where(recorded, albedo + zero, b) for b in beta_s)
-            s.rec = torch.where(recorded, s.rec_base + n_s - 1, torch.full_like(s.rec, -1))
-            s.spread, s.a0, s.n_term = spread, a0, n_term
-            s.x_prev = _where3(go, x, s.x_prev)
-
-        # the vertex does next-event estimation: a scattering one; with cache_target=indirect a terminating one too
-        nee = go if self.nrc is None or self.nrc.cache_target == "full" else torch.ones_like(go)
-        at = None
-        if self.reuse_vertex:  # a render path's reuse vertex: its next-event estimate is the reuse pass's
-            at = n_s == self.reuse_vertex
-            at = at if self.nrc is None else at & (s.rec_base < 0)
-            nee = nee & ~at
+        prm = {name: p[self.ix[name]] for name in self.program.param_names}
+        dec = self.program.decide(s, n_s, beta_s, albedo, prm, u[self.lane_program:self.lane_light])
+        go, nee = dec.go, dec.nee
         lights = self.lights
         sh = torch.zeros_like(s.shadow)
         wi, tse, csh = s.wi, s.tse, s.csh
@@ -347,17 +273,11 @@ class Transport:
                 wi, l_dist, l_w, l_pdf, l_env = cands[0] if m == 1 else resample(cands, phase_of, ul[4 * m])[0]
             tse = torch.minimum(box_exit(lo, hi, x, wi), l_dist)
             phase = phase_of(wi)
-            # MIS against phase sampling where the path goes on to find the environment; a continued path under
-            # cache_target=indirect keeps the terminal vertex's estimate (light sampling alone, throughput beta)
-            mis = go & ~cont if self.indirect_debias else go
-            w = phase * torch.where(l_env & mis, power_heuristic(l_pdf, phase), torch.ones_like(phase))
-            b_nee = beta_s
-            if self.debias and not self.indirect_debias:  # full: the vertex's estimate is part of the suffix
-                b_nee = tuple(torch.where(cont, b / p[self.ix["debias_q"]], b) for b in beta_s)
-            csh = tuple(b * lw * w for b, lw in zip(b_nee, l_w))
+            # MIS against phase sampling where the path goes on to find the environment
+            w = phase * torch.where(l_env & dec.mis, power_heuristic(l_pdf, phase), torch.ones_like(phase))
+            csh = tuple(b * lw * w for b, lw in zip(dec.nee_beta, l_w))
             sh = torch.where(nee, torch.full_like(sh, 1 if self.inline_shadow else 2), sh)
-        if self.debias:  # the suffix carries 1/q
-            beta_s = tuple(torch.where(cont, b / p[self.ix["debias_q"]], b) for b in beta_s)
+        beta_s = dec.beta
         amax = torch.maximum(torch.maximum(beta_s[0], beta_s[1]), beta_s[2])
         stop = amax <= 0
         if not lights.has_env:  # the last vertex only continues when phase sampling can reach the sky (MIS)
@@ -374,12 +294,8 @@ class Transport:
         s.t = torch.where(go, zero, s.t)
         s.tmax = torch.where(go, t_far, s.tmax)
         s.beta = _where3(go, beta_s, s.beta)
-        # pdf < 0 marks a segment whose environment is not counted at the escape: a continued path's first segment
-        # under cache_target=indirect (its vertex's direct light came from light sampling alone)
-        # (and, with reuse_light_only, a render path's segment from its reuse vertex)
-        no_env = cont if self.indirect_debias else None
-        if self.reuse_light_only:
-            no_env = at if no_env is None else no_env | at
+        # pdf < 0 marks a segment whose escape does not count the environment (Decision.skip_env)
+        no_env = dec.skip_env
         s.pdf = torch.where(go, torch.where(no_env, -pdf_s, pdf_s) if no_env is not None else pdf_s, s.pdf)
         s.wi = _where3(nee, wi, s.wi)
         s.ts = torch.where(nee, zero, s.ts)

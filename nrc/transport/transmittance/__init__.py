@@ -18,10 +18,21 @@ name                      estimator                                            r
 ``unbiased_raymarch``     Kettunen et al. 2021                                 any real (unclamped)
 ``biased_raymarch``       the comb only, ``exp(-X)`` (biased upwards)          ``[0, 1]``
 ========================  ===================================================  ======================
+
+A new estimator is one file and one YAML: a module with a function of the signature above (its keyword
+parameters with defaults are the tunable ones) and ``conf/transmittance/<name>.yaml`` naming it::
+
+    name: my_estimator
+    estimator: my_package.my_module:estimate   # imported and registered under ``name`` on first use
+    my_param: 0.5
+
+(or :func:`register` in code). Estimators without a per-step form run on the queued shadow rays of
+``pt`` and ``nrc`` (``renderer.shadow_batch`` rays a call).
 """
 
 from __future__ import annotations
 
+import importlib
 import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -43,6 +54,34 @@ ESTIMATORS: dict[str, Callable[..., Any]] = {
 DEFAULT_ESTIMATOR = "ratio"
 
 _POSITIONAL = ("grid", "majorants", "origin", "direction", "t0", "t1", "gen", "return_stats")
+
+
+def register(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Register estimator ``fn`` under ``name`` (the signature in the module docstring); returns ``fn``.
+
+    Raises:
+        ConfigError: ``name`` already names another estimator, or ``fn`` lacks the positional parameters.
+    """
+    if ESTIMATORS.get(name, fn) is not fn:
+        raise ConfigError(f"transmittance {name!r} is already registered to another estimator")
+    params = list(inspect.signature(fn).parameters)
+    missing = [p for p in _POSITIONAL if p not in params]
+    if missing:
+        raise ConfigError(f"transmittance estimator {name!r} lacks the parameter(s) {', '.join(missing)}")
+    ESTIMATORS[name] = fn
+    return fn
+
+
+def _load(name: str, spec: str) -> None:
+    """Import ``module:function`` and register it as ``name`` (``transmittance.estimator``)."""
+    module, _, attr = str(spec).partition(":")
+    if not module or not attr:
+        raise ConfigError(f"transmittance.estimator must be 'module:function', got {spec!r}")
+    try:
+        fn = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"transmittance.estimator {spec!r} cannot be imported: {exc}") from None
+    register(name, fn)
 
 
 def estimator_params(name: str) -> dict[str, Any]:
@@ -96,11 +135,14 @@ def make_transmittance(cfg: Mapping[str, Any] | str | None) -> Transmittance:
     items = dict(cfg.items())
     if "name" not in items:
         raise ConfigError("transmittance.name is missing")
-    name = items.pop("name")
-    return Transmittance(str(name), items)
+    name = str(items.pop("name"))
+    spec = items.pop("estimator", None)
+    if spec is not None:
+        _load(name, spec)
+    return Transmittance(name, items)
 
 
 __all__ = [
     "ESTIMATORS", "DEFAULT_ESTIMATOR", "Transmittance", "TrackingStats", "estimator_params",
-    "make_transmittance", "roulette_probabilities",
+    "make_transmittance", "register", "roulette_probabilities",
 ]

@@ -71,7 +71,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from nrc.render.wavefront.state import QUERY, Layout, just_continued
+from nrc.render.reuse.hook import ReuseHook
+from nrc.render.wavefront.program import VertexEvent
 from nrc.transport.light_sampling import LightSampler, luminance3, power_heuristic
 from nrc.transport.phase import hg_pdf
 
@@ -191,6 +192,17 @@ class ReuseSettings:
         phase-sampled direction from it does not count the environment it reaches (no MIS there)."""
         return self.mode != "none" and self.domain == "distance"
 
+    def hooks(self, g: float) -> tuple:
+        """The hooks of the renderers' vertex programs (none without reuse)."""
+        vertex = self.vertex(g)
+        return (ReuseHook(vertex, self.light_only),) if vertex else ()
+
+    def record(self, n: int, g: float, albedo: float, device: torch.device) -> VertexRecord | None:
+        """An empty record of ``n`` sample slots for the reuse vertices (``None``: nothing to record, no reuse or
+        ``domain=distance``)."""
+        vertex = self.vertex(g)
+        return VertexRecord.empty(n, vertex, albedo, device) if vertex and not self.light_only else None
+
     def metrics(self, g: float) -> dict[str, Any]:
         return {"reuse": self.mode, "reuse_neighbors": self.neighbors if self.mode != "none" else 0,
                 "reuse_radius": self.radius, "reuse_history": self.history, "reuse_vertex": self.vertex(g),
@@ -203,53 +215,40 @@ class ReuseSettings:
 class VertexRecord:
     """The render paths' reuse vertices of one frame (or ``pt`` pass), one row per sample slot
     ``pixel x spp + sample``: position ``x``, incoming unit direction ``d``, throughput x albedo ``beta``
-    (``(N, 3)``), ``mis`` (the path goes on from it: the environment's MIS applies) and ``valid`` (``(N,)``)."""
+    (``(N, 3)``), ``mis`` (the path goes on from it: the environment's MIS applies) and ``valid`` (``(N,)``).
+    A watcher of the wavefront's vertex passes (:meth:`record` of a
+    :class:`~nrc.render.wavefront.program.VertexEvent`)."""
 
     vertex: int
     albedo: float
-    indirect: bool  # nrc cache_target=indirect: a path terminating there records it too (its NEE, no MIS)
     x: Tensor
     d: Tensor
     beta: Tensor
     mis: Tensor
     valid: Tensor
-    # renderer.debias: the probability q of going on past a cache termination. A path continued at the reuse
-    # vertex takes part in the MIS and carries 1/q under cache_target=full (its estimate there is part of the
-    # suffix); under indirect it keeps the terminal vertex's estimate (no MIS, throughput beta)
-    debias_q: float = 0.0
 
     @classmethod
-    def empty(cls, n: int, vertex: int, albedo: float, indirect: bool, device: torch.device,
-              debias_q: float = 0.0) -> VertexRecord:
+    def empty(cls, n: int, vertex: int, albedo: float, device: torch.device) -> VertexRecord:
         z3 = torch.zeros(n, 3, device=device)
         zb = torch.zeros(n, dtype=torch.bool, device=device)
-        return cls(vertex, float(albedo), indirect, z3, z3.clone(), z3.clone(), zb, zb.clone(), float(debias_q))
+        return cls(vertex, float(albedo), z3, z3.clone(), z3.clone(), zb, zb.clone())
 
     @property
     def n(self) -> int:
         return self.x.shape[0]
 
-    def record(self, layout: Layout, F: Tensor, I: Tensor, Fs: Tensor, Is: Tensor) -> None:
-        """Record the reuse vertices among slots ``(F, I)`` before and ``(Fs, Is)`` after the vertex step."""
-        ly = layout
-        at = I[ly.i("n")] == self.vertex - 1
-        if ly.nrc:
-            at = at & (I[ly.i("rec_base")] < 0)
-        go = Is[ly.i("flight")] != QUERY
-        idx = (at & (go | self.indirect)).nonzero().squeeze(1)
+    def record(self, ev: VertexEvent) -> None:
+        """Record the reuse vertices of a vertex pass: render samples at vertex :attr:`vertex` whose direct light
+        is estimated there (the renderer's vertex program left that estimate to this pass)."""
+        at = (ev.n == self.vertex - 1) & (ev.sample >= 0)
+        idx = (at & ev.nee).nonzero().squeeze(1)
         if not len(idx):
             return
-        slot = (I[ly.i("pid")] if ly.nrc else I[ly.i("dest")])[idx]
-        mis, scale = go[idx], torch.ones(len(idx), device=F.device)
-        if self.debias_q > 0:  # continued past the cache termination here (renderer.debias)
-            cont = just_continued(I[ly.i("never")][idx], Is[ly.i("never")][idx])
-            if self.indirect:
-                mis = mis & ~cont
-            else:
-                scale = torch.where(cont, scale / self.debias_q, scale)
-        self.x[slot] = Fs[ly.f("o")][:, idx].T
-        self.d[slot] = F[ly.f("d")][:, idx].T
-        self.beta[slot] = F[ly.f("beta")][:, idx].T * self.albedo * scale[:, None]
+        slot = ev.sample[idx]
+        mis, scale = ev.mis[idx], ev.scale[idx]
+        self.x[slot] = ev.x[idx]
+        self.d[slot] = ev.d[idx]
+        self.beta[slot] = ev.beta[idx] * self.albedo * scale[:, None]
         self.mis[slot] = mis
         self.valid[slot] = True
 
