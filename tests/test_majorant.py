@@ -1,10 +1,11 @@
-"""Brick majorant grid: conservative bounds and a DDA that covers each ray segment exactly once."""
+"""Brick majorant grid: conservative bounds, and the brick walk covers each ray segment exactly once."""
 
 import pytest
 import torch
 
 from nrc.volume.grid import DensityGrid
-from nrc.volume.majorant import BrickTraversal, MajorantGrid
+from nrc.transport.tracking import majorant_segments, optical_depth_bounds
+from nrc.volume.majorant import MajorantGrid
 
 
 def random_rays(grid, n, gen):
@@ -29,38 +30,34 @@ def test_majorant_bounds_every_lookup_along_random_rays(brick):
     mg = MajorantGrid(grid, brick=brick)
     o, d = random_rays(grid, 4000, gen)
     t0, t1 = grid.box.intersect(o, d)
-    trav = mg.traverse(o, d, t0, t1)
     covered = torch.zeros_like(t0)
     steps = 0
-    while trav.active.any():
-        a = trav.active
-        s0, s1 = trav.t, trav.t_exit()
+    for a, s0, s1, maj, mnr in majorant_segments(mg, o, d, t0, t1):
         assert bool((s1[a] >= s0[a]).all())
         covered += torch.where(a, s1 - s0, torch.zeros_like(s0))
         for s in torch.linspace(0, 1, 11):
             x = o + (s0 + s * (s1 - s0))[:, None] * d
             sig = grid.sigma_t(x)
             # bounds are tight (no dilation): allow for rounding of points on brick faces
-            tol = 1e-4 * trav.majorant() + 1e-5 * mg.global_majorant
-            assert bool((sig[a] <= trav.majorant()[a] + tol[a]).all()), "brick majorant exceeded"
+            tol = 1e-4 * maj + 1e-5 * mg.global_majorant
+            assert bool((sig[a] <= maj[a] + tol[a]).all()), "brick majorant exceeded"
             # the minorant holds inside the box (on its faces rounding may step outside, where D = 0)
             inner = a & ((x > grid.box.lo + 1e-4) & (x < grid.box.hi - 1e-4)).all(dim=-1)
-            assert bool((sig[inner] >= trav.minorant()[inner] - tol[inner]).all()), "brick minorant exceeded"
-        trav.advance(a)
+            assert bool((sig[inner] >= mnr[inner] - tol[inner]).all()), "brick minorant exceeded"
         steps += 1
         assert steps <= sum(mg.shape) + 3
     torch.testing.assert_close(covered, t1 - t0, atol=1e-4, rtol=1e-5)
     assert mg.global_majorant == pytest.approx(float(D.max()) * 3.0)
 
 
-def test_integrate_bounds_bracket_the_optical_depth():
+def test_optical_depth_bounds_bracket_the_optical_depth():
     gen = torch.Generator().manual_seed(7)
     D = torch.rand(16, 12, 9, generator=gen)
     grid = DensityGrid(D, center=(0, 0, 0), diagonal=4.0, density_scale=2.0)
     mg = MajorantGrid(grid, brick=4)
     o, d = random_rays(grid, 500, gen)
     t0, t1 = grid.box.intersect(o, d)
-    hi, lo = mg.integrate_bounds(o, d, t0, t1)
+    hi, lo = optical_depth_bounds(mg, o, d, t0, t1)
     n = 2000
     s = (torch.arange(n) + 0.5) / n
     tau = sum(grid.sigma_t(o + (t0 + si * (t1 - t0))[:, None] * d) for si in s) * (t1 - t0) / n
@@ -87,38 +84,25 @@ def test_bricks_are_tight_for_single_interpolation_cells():
     assert int((mg.majorant > 0).sum()) == 8
 
 
-def test_rays_missing_the_box_start_inactive():
+def test_rays_missing_the_box_yield_nothing():
     grid = DensityGrid(torch.ones(4, 4, 4), (0, 0, 0), 1.0, 1.0)
     mg = MajorantGrid(grid, brick=2)
     o = torch.tensor([[5.0, 5.0, 5.0], [0.0, 0.0, -3.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     t0, t1 = grid.box.intersect(o, d)
-    trav = mg.traverse(o, d, t0, t1)
-    assert trav.active.tolist() == [False, True]
+    first = next(majorant_segments(mg, o, d, t0, t1))
+    assert first[0].tolist() == [False, True] and float(first[3][0]) == 0.0
 
 
-def test_skip_empty_equals_advancing_through_empty_bricks():
-    """skip_empty leaves every ray where repeated advance() calls stop: at its first non-empty brick or done."""
-    gen = torch.Generator().manual_seed(3)
-    D = torch.zeros(40, 32, 24)
-    D[10:14, 8:20, 5:9] = torch.rand(4, 12, 4, generator=gen)
-    D[30:33, 25:28, 15:20] = 1.0
+def test_a_run_of_empty_bricks_is_one_segment():
+    """The walk crosses an empty cube in one step: fewer segments than bricks crossed, and still an exact tiling."""
+    D = torch.zeros(40, 40, 40)
+    D[18:22, 18:22, 18:22] = 1.0
     grid = DensityGrid(D, center=(0, 0, 0), diagonal=3.0, density_scale=2.0)
-    mg = MajorantGrid(grid, brick=4)
-    o, d = random_rays(grid, 3000, gen)
+    mg = MajorantGrid(grid, brick=1)
+    o = torch.tensor([[-2.0, -0.7, 0.05]])
+    d = torch.tensor([[1.0, 0.0, 0.0]])
     t0, t1 = grid.box.intersect(o, d)
-    fast = mg.traverse(o, d, t0, t1)
-    slow = mg.traverse(o, d, t0, t1)
-    skipped = fast.skip_empty()
-    steps = 0
-    while True:
-        empty = slow.active & (slow.majorant() == 0)
-        if not bool(empty.any()):
-            break
-        steps += int(empty.sum())
-        slow.advance(empty)
-    assert skipped == steps > 0
-    for name in BrickTraversal._STATE:
-        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=0, atol=0)
-    assert bool((fast.majorant()[fast.active] > 0).all())
-    assert fast.skip_empty(min_rays=1) == 0
+    segs = list(majorant_segments(mg, o, d, t0, t1))
+    torch.testing.assert_close(sum(s[2] - s[1] for s in segs), t1 - t0)
+    assert len(segs) < mg.shape[0] // 2

@@ -389,7 +389,7 @@ def test_compiled_step_structure_with_distance_reuse_agrees_with_the_eager_step(
             pt = PathTracer(load_scene(cfg.scene), cfg)
             if structure:
                 assert pt.core.step is not pt.core.eager_step  # shadow rays inside the step: other code
-                assert ("reuse", 1, "light_only") in pt.core.step.structure
+                assert ("reuse", 1, "light_only") in pt.core.step.program.structure
                 pt.core.eager_step = pt.core.step
             out.append(pt.render().image)
         return out

@@ -13,7 +13,7 @@ cosine towards the light is ``-sin theta``, so sampling ``theta`` in proportion 
 :class:`PhaseAngleTable`) cancels the phase function too -- for ``g = 0.8`` it varies 729-fold along a ray, and
 plain equi-angular sampling was measured *less* efficient than next-event estimation there. And the density at
 brick resolution: the pdf follows the bricks the segment crosses
-(:meth:`nrc.volume.majorant.MajorantGrid.traverse`, the one brick iterator), in brick ``k``
+(:func:`nrc.transport.tracking.majorant_segments`, the one brick walk of the eager code), in brick ``k``
 ``m_k p(theta) (dtheta/dt) / W`` with ``m_k`` the brick's majorant and ``W`` the sum over the bricks of ``m_k``
 times the phase integral over their angles; empty bricks, where ``sigma_s`` is zero, are never sampled. What
 is left in the estimate is ``beta (sigma_s(x) / m_k) I T(o, x) T(x, p) W / h``: bounded but for ``1/h``, the
@@ -32,7 +32,7 @@ split the integrand, not weight it: the vertex estimates everything but the poin
 module estimates that. Every vertex the path reaches sits on a segment, so nothing is counted twice or missed.
 
 Memory: per batch of ``N`` segments, ``K`` ``(N,)`` floats for the ``K`` brick crossings of the longest
-segment (``K <= bx + by + bz``), and the estimator's own state for ``2N`` rays.
+segment (``K <= bx + by + bz``; a run of empty bricks is one), and the estimator's own state for ``2N`` rays.
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ from torch import Tensor
 from nrc.transport.light_sampling import light_powers
 from nrc.transport.lights import PointLight
 from nrc.transport.phase import hg_pdf
+from nrc.transport.tracking import majorant_segments
 from nrc.volume.majorant import MajorantGrid
 
 H_MIN = 1e-4  # the light's distance from the ray is clamped to H_MIN x brick size (sampling and pdf alike)
@@ -130,20 +131,16 @@ def segments(majorants: MajorantGrid, o: Tensor, d: Tensor, ta: Tensor, tb: Tens
     rel = p - o
     delta = (rel * d).sum(-1)
     h = torch.linalg.vector_norm(rel - delta[:, None] * d, dim=-1).clamp(min=H_MIN * majorants.brick_size)
-    trav = majorants.traverse(o, d, ta, tb)
     t0s, t1s, weights, majs = [], [], [], []
     total = torch.zeros_like(ta)
-    while bool(trav.active.any()):
-        a, b = trav.t, trav.t_exit()
-        m = torch.where(trav.active, trav.majorant(), torch.zeros_like(a))
+    for _, a, b, m, _ in majorant_segments(majorants, o, d, ta, tb):
         c = table.cdf(torch.atan((b - delta) / h)) - table.cdf(torch.atan((a - delta) / h))
         w = torch.where(m > 0, c.clamp(min=0.0) * m, torch.zeros_like(a))
-        t0s.append(a.clone())
-        t1s.append(b.clone())
+        t0s.append(a)
+        t1s.append(b)
         weights.append(w)
         majs.append(m)
         total = total + w
-        trav.advance(trav.active)
     return EquiangularSegments(table, delta, h, total, t0s, t1s, weights, majs)
 
 

@@ -28,6 +28,10 @@ For the chosen light a direction ``wi`` (unit, from the shading point towards th
 The returned ``weight`` already includes ``1 / P(select)``; the caller multiplies by the phase function,
 the transmittance to the light and, for environment samples, the MIS weight (power heuristic against
 phase sampling, whose escape contributions use :meth:`LightSampler.env_pdf`).
+
+One owner: :class:`LightTable` holds the choice and the geometry (component form, the lights' numbers as an input
+of the compiled step); :class:`LightSampler` (rows) adds the lat-long maps and the environment's pdf and radiance
+on top of the same code; :func:`resample` is RIS for both.
 """
 
 from __future__ import annotations
@@ -62,17 +66,14 @@ class LightSamplingSettings:
     flight segment instead of next-event estimation at the vertices (:mod:`nrc.transport.equiangular`)."""
 
     @classmethod
-    def from_config(cls, cfg, defaults: bool = False) -> LightSamplingSettings:
-        """Read from a :class:`nrc.config.ConfigReader` of the ``renderer`` block (``defaults``: missing keys take
-        this class's defaults; otherwise they are required, their defaults living in the YAML)."""
-        d = cls()
-        kw = {"default": d.selection} if defaults else {}
-        selection = cfg.get_choice("light_selection", list(SELECTIONS), **kw)
+    def from_config(cls, cfg) -> LightSamplingSettings:
+        """Read from a :class:`nrc.config.ConfigReader` of the ``renderer`` block (every key required: the defaults
+        live in ``conf/renderer/shared/wavefront.yaml``)."""
+        selection = cfg.get_choice("light_selection", list(SELECTIONS))
         ris = cfg.block("ris")
-        candidates = ris.get_int("candidates", *((d.candidates,) if defaults else ()), lo=1)
+        candidates = ris.get_int("candidates", lo=1)
         ris.finish()
-        point = cfg.get_choice("point_light_sampling", list(POINT_LIGHT_SAMPLING),
-                               **({"default": d.point_lights} if defaults else {}))
+        point = cfg.get_choice("point_light_sampling", list(POINT_LIGHT_SAMPLING))
         return cls(selection, candidates, point)
 
     def equiangular_points(self, scene) -> tuple[PointLight, ...]:
@@ -138,12 +139,17 @@ def latlong_to_direction(u: Tensor, v: Tensor) -> Tensor:
     return torch.stack([s * torch.sin(phi), torch.cos(theta), -s * torch.cos(phi)], dim=-1)
 
 
+def sphere_direction(u0: Tensor, u1: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """A uniform direction on the unit sphere (pdf ``1 / 4pi``) from two uniforms, in component form."""
+    z = 1.0 - 2.0 * u0
+    r = torch.sqrt((1.0 - z * z).clamp(min=0.0))
+    phi = 2.0 * math.pi * u1
+    return r * torch.cos(phi), r * torch.sin(phi), z
+
+
 def uniform_sphere(u: Tensor) -> Tensor:
     """Uniform directions on the unit sphere from ``u`` ``(N, 2)`` in ``[0, 1)^2`` (pdf ``1 / 4pi``)."""
-    z = 1.0 - 2.0 * u[:, 0]
-    r = torch.sqrt((1.0 - z * z).clamp(min=0.0))
-    phi = 2.0 * math.pi * u[:, 1]
-    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+    return torch.stack(sphere_direction(u[:, 0], u[:, 1]), dim=-1)
 
 
 class EnvironmentMap:
@@ -262,7 +268,9 @@ class LightSampler:
             if total > 0:
                 self.pmf = [pw / total for pw in powers]
         self._pmf = torch.tensor(self.pmf or [1.0], device=device)
-        self._cdf = torch.cumsum(self._pmf.double(), 0).float()
+        # the one code of light choice and geometry (the compiled step's form; module docstring)
+        self.table = LightTable(self)
+        self._values = torch.tensor(self.table.values or [0.0], dtype=torch.float32, device=device).unbind(0)
 
     @classmethod
     def for_scene(cls, scene, selection: str = "uniform", candidates: int = 1,
@@ -308,12 +316,11 @@ class LightSampler:
         return pdf
 
     def sample(self, x: Tensor, u: Tensor) -> LightSample:
-        """Sample one light per point ``x`` ``(N, 3)`` with uniforms ``u`` ``(N, 4)``; requires ``n_lights > 0``."""
+        """Sample one light per point ``x`` ``(N, 3)`` with uniforms ``u`` ``(N, 4)``; requires ``n_lights > 0``.
+        The choice (``u[:, 0]``) and the lights' geometry are :class:`LightTable`'s; environment directions come
+        from ``u[:, 1:3]`` (uniform sky) or ``u[:, 1:4]`` (a lat-long map)."""
         n = x.shape[0]
-        if self.selection == "uniform":
-            k = (u[:, 0] * self.n_lights).long().clamp(max=self.n_lights - 1)
-        else:
-            k = torch.searchsorted(self._cdf, u[:, 0].contiguous(), right=True).clamp(max=self.n_lights - 1)
+        k, inv_select = self.table.choose(self._values, u[:, 0], torch.zeros_like(u[:, 0]))
         # the sample y = (k, omega): an environment light's direction is drawn here, a delta light's direction,
         # distance and contribution at x come from evaluate() (one geometry for sampling and for reuse)
         omega = torch.zeros(n, 3, device=x.device)
@@ -337,9 +344,7 @@ class LightSampler:
             is_env = is_env | m
             idx += 1
         wi, dist, weight, _ = self.evaluate(k, omega, x)
-        # 1 / P(select) of the delta lights' samples
-        inv_select = torch.full((n,), float(self.n_lights), device=x.device) if self.selection == "uniform" \
-            else 1.0 / self._pmf[k].clamp(min=1e-30)
+        inv_select = torch.as_tensor(inv_select, dtype=weight.dtype, device=x.device).expand(n)
         if self.has_env:
             # Environment samples: balance heuristic over all environment lights, i.e. the total
             # environment radiance over the summed pdf (which includes P(select)).
@@ -369,27 +374,10 @@ class LightSampler:
         measure of light index x environment direction)."""
         n, dev = x.shape[0], x.device
         nd, npt = len(self.directional), len(self.points)
-        wi = omega.clone()
-        dist = torch.full((n,), float("inf"), device=dev)
-        contribution = torch.zeros(n, 3, device=dev)
         sel = self._pmf[light.clamp(0, max(self.n_lights - 1, 0))] if self.selection != "uniform" else \
             torch.full((n,), 1.0 / max(self.n_lights, 1), device=dev)
-        if nd:
-            m = light < nd
-            kk = light.clamp(0, nd - 1)
-            wi = torch.where(m[:, None], -torch.stack([lt.direction for lt in self.directional])[kk], wi)
-            contribution = torch.where(m[:, None], torch.stack([lt.irradiance for lt in self.directional])[kk],
-                                       contribution)
-        if npt:
-            m = (light >= nd) & (light < nd + npt)
-            kk = (light - nd).clamp(0, npt - 1)
-            to = torch.stack([lt.position for lt in self.points])[kk] - x
-            r2 = (to * to).sum(-1).clamp(min=1e-12)
-            r = torch.sqrt(r2)
-            wi = torch.where(m[:, None], to / r[:, None], wi)
-            dist = torch.where(m, r, dist)
-            contribution = torch.where(m[:, None], torch.stack([lt.intensity for lt in self.points])[kk] / r2[:, None],
-                                       contribution)
+        wi, dist, c, _ = self.table.evaluate(self._values, light, tuple(omega.unbind(1)), tuple(x.unbind(1)))
+        wi, contribution = torch.stack(wi, 1), torch.stack(c, 1)
         p_src = sel
         if self.has_env:
             env = light >= nd + npt
@@ -469,7 +457,9 @@ def _pick(m: Tensor, new: tuple, old: tuple) -> tuple:
 
 
 class LightTable:
-    """:class:`LightSampler`'s uniform selection in the form a per-slot step consumes: the *structure* (how
+    """The one code of the light choice (:meth:`choose`) and the lights' geometry (:meth:`evaluate`), in the form
+    a per-slot step consumes; :class:`LightSampler` (eager rows, lat-long maps, the reuse pass's re-evaluation)
+    builds on the same two methods. The *structure* (how
     many directional and point lights, whether a uniform sky exists) is fixed, the lights' parameters are
     numbers in :attr:`values` that a compiled step takes as an input, so moving, recolouring or dimming a
     light does not recompile. Lat-long environment maps are not supported (:attr:`supported`).
@@ -535,28 +525,27 @@ class LightTable:
         cands = [self.sample(values, x, u[j * k:(j + 1) * k]) for j in range(self.candidates)]
         return resample(cands, phase_of, u[self.candidates * k])[0]
 
-    def sample(self, values: list, x: tuple, u: list) -> tuple[tuple, Tensor, tuple, Tensor, Tensor]:
-        """``(wi, distance, weight, light_pdf, is_env)`` as :meth:`LightSampler.sample`, in component form,
-        with :attr:`values` as numbers or 0-d tensors and ``u`` the :attr:`lanes` uniforms."""
+    def choose(self, values: list, u: Tensor, like: Tensor) -> tuple[Tensor, Tensor | int]:
+        """``(k, 1 / P(k))``: the chosen light's index in light order (``(N,)`` int64) from the choice's uniform
+        ``u`` (unused with one light), with :attr:`values` as numbers or 0-d tensors."""
         n = self.n_lights
-        power = self.selection == "power"
+        if self.selection == "power":  # the selection probabilities are the last n values: k = CDF steps <= u
+            pmf = _block(values, len(values) - n, n, 1, like)[:, 0]
+            k = (u[:, None] >= torch.cumsum(pmf, 0)[None, :-1]).long().sum(-1)
+            return k, 1.0 / pmf[k].clamp(min=1e-30)
+        if n > 1:
+            return (u * n).long().clamp(max=n - 1), n
+        return torch.zeros_like(like, dtype=torch.long), n
+
+    def evaluate(self, values: list, k: Tensor, omega: tuple, x: tuple) -> tuple[tuple, Tensor, tuple, Tensor]:
+        """``(wi, distance, contribution, is_env)`` at points ``x`` of light ``k`` (component form): a delta
+        light's direction, distance and unshadowed contribution (``irradiance``, ``intensity / r^2``); for the
+        uniform sky the direction ``omega`` and its radiance (``is_env``). Other indices (lat-long maps) keep
+        ``wi = omega`` and a zero contribution."""
         zero = torch.zeros_like(x[0])
-        # the chosen light's index k in light order (0 with one light), from the choice's uniform (lane 0)
-        lane = int(n > 1)
-        if power:  # the selection probabilities are the last n values: k = the CDF steps at or below u
-            pmf = _block(values, len(values) - n, n, 1, zero)[:, 0]
-            k = (u[0][:, None] >= torch.cumsum(pmf, 0)[None, :-1]).long().sum(-1)
-            inv = 1.0 / pmf[k].clamp(min=1e-30)
-        elif n > 1:
-            k = (u[0] * n).long().clamp(max=n - 1)
-        else:
-            k = torch.zeros_like(x[0], dtype=torch.long)
-        # 1 / (the choice's probability); a local, not a conditionally bound name read in a generator (torch 2.11's
-        # Dynamo cannot read a closure cell that one branch leaves unset)
-        scale = inv if power else n
-        wi: tuple = (zero, zero + 1.0, zero)
+        wi: tuple = omega
         dist = torch.full_like(zero, math.inf)
-        weight: tuple = (zero, zero, zero)
+        contribution: tuple = (zero, zero, zero)
         is_env = torch.zeros_like(zero, dtype=torch.bool)
         idx, pos = 0, 0
         nd, npt = self.n_directional, self.n_points
@@ -564,7 +553,7 @@ class LightTable:
             m = (k >= idx) & (k < idx + nd)
             row = _block(values, pos, nd, 6, zero)[(k - idx).clamp(0, nd - 1)]
             wi = _pick(m, tuple(row[:, j] for j in range(3)), wi)
-            weight = _pick(m, tuple(row[:, j] for j in range(3, 6)), weight)
+            contribution = _pick(m, tuple(row[:, j] for j in range(3, 6)), contribution)
             idx, pos = idx + nd, pos + 6 * nd
         if npt:
             m = (k >= idx) & (k < idx + npt)
@@ -574,19 +563,30 @@ class LightTable:
             r = torch.sqrt(r2)
             wi = _pick(m, (to[0] / r, to[1] / r, to[2] / r), wi)
             dist = torch.where(m, r, dist)
-            weight = _pick(m, (row[:, 3] / r2, row[:, 4] / r2, row[:, 5] / r2), weight)
+            contribution = _pick(m, (row[:, 3] / r2, row[:, 4] / r2, row[:, 5] / r2), contribution)
             idx, pos = idx + npt, pos + 6 * npt
         if self.has_uniform_env:
-            m = k == idx
-            z = 1.0 - 2.0 * u[lane]
-            rr = torch.sqrt((1.0 - z * z).clamp(min=0.0))
-            phi = 2.0 * math.pi * u[lane + 1]
-            wi = _pick(m, (rr * torch.cos(phi), rr * torch.sin(phi), z), wi)
-            is_env = m
-            env, pdf = values[pos:pos + 3], values[pos + 3]
+            is_env = k == idx
+            contribution = tuple(torch.where(is_env, e + zero, c) for e, c in zip(values[pos:pos + 3], contribution))
+        return wi, dist, contribution, is_env
+
+    def sample(self, values: list, x: tuple, u: list) -> tuple[tuple, Tensor, tuple, Tensor, Tensor]:
+        """``(wi, distance, weight, light_pdf, is_env)`` as :meth:`LightSampler.sample`, in component form,
+        with :attr:`values` as numbers or 0-d tensors and ``u`` the :attr:`lanes` uniforms: :meth:`choose`, the
+        sky's direction, :meth:`evaluate`, the weight over the pdf."""
+        zero = torch.zeros_like(x[0])
+        lane = int(self.n_lights > 1)  # the choice's uniform, then the sky's two
+        k, scale = self.choose(values, u[0] if lane else zero, zero)
+        omega: tuple = (zero, zero + 1.0, zero)
+        if self.has_uniform_env:
+            sky = k == self.n_directional + self.n_points
+            omega = _pick(sky, sphere_direction(u[lane], u[lane + 1]), omega)
+        wi, dist, contribution, is_env = self.evaluate(values, k, omega, x)
+        if self.has_uniform_env:
+            pdf = values[6 * (self.n_directional + self.n_points) + 3]
             light_pdf = torch.where(is_env, zero + pdf, zero)
-            weight = tuple(torch.where(is_env, e / pdf + zero, w * scale) for e, w in zip(env, weight))
+            weight = tuple(torch.where(is_env, c / pdf, c * scale) for c in contribution)
         else:
             light_pdf = zero
-            weight = tuple(w * scale for w in weight)
+            weight = tuple(c * scale for c in contribution)
         return wi, dist, weight, light_pdf, is_env

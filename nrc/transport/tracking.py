@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import weakref
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -154,9 +155,13 @@ def skip_radius(majorants: MajorantGrid, max_radius: int = MAX_SKIP) -> Tensor:
     return r
 
 
-class _Walk:
-    """Batched majorant walk: a brick DDA (Amanatides & Woo) that advances lazily, one brick per inner step,
-    only for the rays whose current exponential sample reaches past their current brick."""
+class MajorantWalk:
+    """The batched majorant walk of the eager code (the estimators, equi-angular sampling, the optical-depth
+    bounds): a brick DDA (Amanatides & Woo) over a :class:`~nrc.volume.majorant.MajorantGrid` whose rays advance
+    lazily, one brick (or one empty cube) per inner step, only where the current exponential sample reaches past
+    the current brick. The compiled transport step's form of the same bricks is
+    :meth:`nrc.volume.majorant.BrickTables.segment` (stateless: the brick of the ray's current point).
+    :func:`majorant_segments` iterates it segment by segment."""
 
     def __init__(self, grid, majorants, kind: str, mode: str) -> None:
         self.grid = grid
@@ -265,18 +270,34 @@ class _Walk:
             S.index_copy_(0, sub, R)
 
 
+def majorant_segments(majorants: MajorantGrid, origin: Tensor, direction: Tensor, a: Tensor,
+                      b: Tensor) -> Iterator[tuple[Tensor, Tensor, Tensor, Tensor, Tensor]]:
+    """The walk's segments of ``[a, b]`` ``(N,)`` (inside the box), in order: yields ``(live, t0, t1, majorant,
+    minorant)`` ``(N,)`` per step, ``live`` the rays whose segment is not used up (the others yield
+    ``t0 = t1``, majorant 0). A run of empty bricks comes as one segment of majorant 0; the segments of a ray
+    tile its ``[a, b]`` exactly once. Loops over steps (at most the bricks crossed), never over rays."""
+    walk = MajorantWalk(majorants.grid, majorants, BOUNDS, "brick")
+    S = walk.init_state(origin, direction, a, b, torch.zeros_like(a))
+    live = b > a
+    while bool(live.any()):
+        t0, maj, mnr = S[:, _T].clone(), S[:, _CTRL].clone(), S[:, _RES].clone()
+        walk.advance(S, None)
+        zero = torch.zeros_like(t0)
+        yield live, t0, torch.where(live, S[:, _T], t0), torch.where(live, maj, zero), torch.where(live, mnr, zero)
+        live = live & (S[:, _T] < S[:, _B])
+
+
 def optical_depth_bounds(
     majorants: MajorantGrid, origin: Tensor, direction: Tensor, a: Tensor, b: Tensor
 ) -> tuple[Tensor, Tensor]:
     """``(tau_major, tau_minor)`` ``(N,)``: the brick majorant and minorant integrated over ``[a, b]`` (inside the
-    box). Same values as :meth:`MajorantGrid.integrate_bounds` (checked in the tests), computed by the brick walk
-    of this module (compacted, with empty-space jumps)."""
+    box), by the brick walk of this module (compacted, with empty-space jumps)."""
     tau_major = torch.zeros_like(a)
     tau_minor = torch.zeros_like(a)
     idx = torch.nonzero(b > a).squeeze(1)
     if idx.numel() == 0 or not majorants.global_majorant > 0:
         return tau_major, tau_minor
-    walk = _Walk(majorants.grid, majorants, BOUNDS, "brick")
+    walk = MajorantWalk(majorants.grid, majorants, BOUNDS, "brick")
     S = walk.init_state(origin[idx], direction[idx], a[idx], b[idx], torch.zeros(idx.numel(), device=a.device))
     S[:, _PROD] = 0.0
     while S.shape[0]:
@@ -336,7 +357,7 @@ def track(
         if stats is not None:
             stats.add(st)
         return (t_out, hit_out) if kind == DELTA else w_out
-    walk = _Walk(grid, majorants, kind, mode)
+    walk = MajorantWalk(grid, majorants, kind, mode)
     tau0 = -torch.log1p(-torch.rand(idx.numel(), generator=gen, device=dev))
     S = walk.init_state(origin[idx], direction[idx], a[idx], b[idx], tau0)
     lim_scale = 1.0 + MAJORANT_RTOL

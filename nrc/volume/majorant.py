@@ -1,4 +1,7 @@
-"""Brick majorant grid and its batched ray traversal (3-D DDA) for empty-space skipping.
+"""Brick majorant grid for empty-space skipping, and its tables for the compiled transport step.
+
+The eager code walks the bricks with :class:`nrc.transport.tracking.MajorantWalk` (a batched 3-D DDA); the
+compiled step finds a ray's brick and its exit from the ray's current point (:meth:`BrickTables.segment`).
 
 Bricks live on the lattice of cell *centres* (the lattice trilinear interpolation works on): in continuous
 cell coordinates ``u`` (cell ``i`` spans ``[i, i + 1]``, its centre is ``i + 0.5``) brick ``b`` spans
@@ -83,144 +86,6 @@ class MajorantGrid:
             brick //= 2
         return brick
 
-    def brick_of(self, x: Tensor) -> Tensor:
-        """Integer brick coordinates ``(N, 3)`` of world points, clamped into the brick grid."""
-        b = ((x - self.origin) / self.brick_size).floor().long()
-        hi = torch.tensor(self.shape, device=x.device) - 1
-        return torch.minimum(b.clamp(min=0), hi)
-
-    def majorant_at(self, x: Tensor) -> Tensor:
-        """Brick majorant ``(N,)`` at world points ``(N, 3)`` (points outside the box use the nearest brick)."""
-        b = self.brick_of(x)
-        return self.majorant[b[:, 0], b[:, 1], b[:, 2]]
-
-    def traverse(self, origin: Tensor, direction: Tensor, t_near: Tensor, t_far: Tensor) -> BrickTraversal:
-        """Start a batched DDA over the bricks pierced by the segments ``[t_near, t_far]`` of the rays."""
-        return BrickTraversal(self, origin, direction, t_near, t_far)
-
-    def integrate_bounds(
-        self, origin: Tensor, direction: Tensor, t_near: Tensor, t_far: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """Integrals of the brick majorant and minorant along ray segments.
-
-        Returns ``(tau_major, tau_minor)``, each ``(N,)``: upper and lower bounds of the optical depth
-        of ``[t_near, t_far]``. Loops over DDA steps (at most ``bx + by + bz`` of them), never over rays.
-        """
-        trav = self.traverse(origin, direction, t_near, t_far)
-        tau_major = torch.zeros_like(t_near)
-        tau_minor = torch.zeros_like(t_near)
-        while bool(trav.active.any()):
-            t0, t1 = trav.t, trav.t_exit()
-            length = torch.where(trav.active, t1 - t0, torch.zeros_like(t0))
-            tau_major = tau_major + length * trav.majorant()
-            tau_minor = tau_minor + length * trav.minorant()
-            trav.advance(trav.active)
-        return tau_major, tau_minor
-
-
-class BrickTraversal:
-    """State of a batched 3-D DDA over a :class:`MajorantGrid` (Amanatides & Woo).
-
-    Each ray walks the bricks that its segment ``[t_near, t_far]`` pierces, in order. ``t`` is the start
-    of the current brick segment and :meth:`t_exit` its end. :meth:`advance` moves the selected rays to
-    their next brick; a ray becomes inactive once its segment is used up. Rays whose segment is empty
-    (``t_near >= t_far``) start inactive.
-
-    Args:
-        grid: the majorant grid.
-        origin, direction: ``(N, 3)`` rays (direction need not be unit; ``t`` is in units of it).
-        t_near, t_far: ``(N,)`` segment, already clipped to the grid box.
-    """
-
-    def __init__(self, grid: MajorantGrid, origin: Tensor, direction: Tensor, t_near: Tensor, t_far: Tensor) -> None:
-        self.grid = grid
-        self.t = t_near.clone()
-        self.t_end = t_far.clone()
-        self.active = t_far > t_near
-        entry = origin + t_near[:, None] * direction
-        mid = origin + (0.5 * (t_near + t_far))[:, None] * direction
-        # Entry points on a brick face may round to either side: take the brick of a point a hair inside.
-        nudge = torch.minimum(t_far - t_near, torch.full_like(t_near, 1e-4 * grid.brick_size))
-        inside = torch.where(self.active[:, None], entry + nudge[:, None] * direction, mid)
-        self.cell = grid.brick_of(inside)
-        self.step = torch.sign(direction).long()
-        size = grid.brick_size
-        boundary = grid.origin + (self.cell + (self.step > 0).long()).to(origin.dtype) * size
-        safe = torch.where(direction == 0, torch.ones_like(direction), direction)
-        inf = torch.full_like(direction, float("inf"))
-        self.t_next = torch.where(direction == 0, inf, (boundary - origin) / safe)
-        self.t_next = torch.maximum(self.t_next, self.t[:, None])
-        self.t_delta = torch.where(direction == 0, inf, size / safe.abs())
-        self._hi = torch.tensor(grid.shape, device=origin.device) - 1
-
-    _STATE = ("t", "t_end", "active", "cell", "step", "t_next", "t_delta")
-
-    def restart(self, idx: Tensor, origin: Tensor, direction: Tensor, t_near: Tensor, t_far: Tensor) -> None:
-        """Replace the rays at indices ``idx`` by new rays (as if freshly constructed)."""
-        fresh = BrickTraversal(self.grid, origin, direction, t_near, t_far)
-        for name in self._STATE:
-            getattr(self, name)[idx] = getattr(fresh, name)
-
-    def select(self, keep: Tensor) -> None:
-        """Keep only the rays selected by ``keep`` (a boolean mask or an index tensor), in order."""
-        for name in self._STATE:
-            setattr(self, name, getattr(self, name)[keep])
-
-    def majorant(self) -> Tensor:
-        """Majorant ``(N,)`` of each ray's current brick."""
-        c = self.cell
-        return self.grid.majorant[c[:, 0], c[:, 1], c[:, 2]]
-
-    def minorant(self) -> Tensor:
-        """Minorant ``(N,)`` of each ray's current brick."""
-        c = self.cell
-        return self.grid.minorant[c[:, 0], c[:, 1], c[:, 2]]
-
-    def t_exit(self) -> Tensor:
-        """End ``(N,)`` of each ray's current brick segment (never beyond ``t_far``)."""
-        return torch.minimum(self.t_next.amin(dim=-1), self.t_end)
-
-    def skip_empty(self, min_rays: int = 1) -> int:
-        """Move every active ray out of empty bricks (majorant 0) in one call; returns the bricks skipped.
-
-        Each ray advances until it reaches a brick with a positive majorant or leaves its segment
-        (then it is inactive). Equivalent to calling :meth:`advance` while the brick is empty, but
-        only the rays in empty bricks are touched and no tracking step is spent on them. Does nothing
-        when fewer than ``min_rays`` rays sit in empty bricks (the loop's fixed cost would not pay).
-        """
-        idx = (self.active & (self.majorant() == 0)).nonzero().squeeze(1)
-        if len(idx) < max(min_rays, 1):
-            return 0
-        sub = object.__new__(BrickTraversal)
-        sub.grid, sub._hi = self.grid, self._hi
-        for name in self._STATE:
-            setattr(sub, name, getattr(self, name)[idx])
-        skipped = 0
-        empty = sub.active
-        while True:
-            n = int(empty.sum())
-            if n == 0:
-                break
-            skipped += n
-            sub.advance(empty)
-            empty = sub.active & (sub.majorant() == 0)
-        for name in self._STATE:
-            getattr(self, name)[idx] = getattr(sub, name)
-        return skipped
-
-    def advance(self, mask: Tensor) -> None:
-        """Move the rays selected by the boolean ``(N,)`` mask to their next brick."""
-        mask = mask & self.active
-        t_exit = self.t_exit()
-        axis = self.t_next.argmin(dim=-1, keepdim=True)
-        onehot = torch.zeros_like(self.cell).scatter_(1, axis, 1) * mask[:, None].long()
-        self.cell = self.cell + onehot * self.step
-        self.t_next = torch.where(onehot.bool(), self.t_next + self.t_delta, self.t_next)
-        self.t = torch.where(mask, t_exit, self.t)
-        out = ((self.cell < 0) | (self.cell > self._hi)).any(dim=-1)
-        self.active = self.active & ~(mask & ((self.t >= self.t_end) | out))
-        self.cell = torch.minimum(self.cell.clamp(min=0), self._hi)
-
 
 class BrickTables:
     """Majorant grids in the form a per-slot step consumes: one flat table of brick majorants and, per grid, a
@@ -229,8 +94,8 @@ class BrickTables:
     Table 0 serves free flights and table 1 shadow rays (one table when both use the same grid). A step finds
     a ray's brick from its current point, nudged ``1e-4`` brick edges along the ray (a point on a face
     belongs to the brick it enters), and the distance to that brick's exit (:meth:`segment`). No traversal
-    state is carried between steps (unlike :class:`BrickTraversal`), so refills, shadow rays and compaction
-    need no bookkeeping.
+    state is carried between steps (unlike the eager code's :class:`nrc.transport.tracking.MajorantWalk`), so
+    refills, shadow rays and compaction need no bookkeeping.
 
     Args:
         free_flight, shadow: the :class:`MajorantGrid` of each kind of ray.

@@ -87,7 +87,7 @@ class NRCSettings:
         cfg = ConfigReader(renderer, "renderer")
         cfg.get_choice("name", ["nrc"])
         tr, inf, anim, log = cfg.block("training"), cfg.block("inference"), cfg.block("animate"), cfg.block("log")
-        enabled, roulette = RussianRoulette.from_config(cfg, defaults=True)
+        enabled, roulette = RussianRoulette.from_config(cfg)
         settings = cls(
             slots=cfg.get_int("slots", lo=1),
             shadow_batch=cfg.get_int("shadow_batch", lo=1),
@@ -98,8 +98,8 @@ class NRCSettings:
             free_flight=cfg.get_choice("free_flight", ["brick", "global"]),
             termination=Termination.from_config(cfg.block("termination")),
             cache_target=cfg.get_choice("cache_target", CACHE_TARGETS),
-            light_sampling=LightSamplingSettings.from_config(cfg, defaults=True),
-            reuse=ReuseSettings.from_config(cfg, defaults=True),
+            light_sampling=LightSamplingSettings.from_config(cfg),
+            reuse=ReuseSettings.from_config(cfg),
             debias=DebiasSettings.from_config(cfg),
             training=TrainingSettings(
                 **_training_size(tr),

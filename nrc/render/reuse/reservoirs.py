@@ -157,24 +157,20 @@ class ReuseSettings:
     steps resolve a dense cloud's first mean free path (memory: ``steps`` floats a sample slot)."""
 
     @classmethod
-    def from_config(cls, cfg: Any, defaults: bool = False) -> ReuseSettings:
-        """Read the ``reuse`` block of a :class:`nrc.config.ConfigReader` of the ``renderer`` block
-        (``defaults``: missing keys take this class's defaults; otherwise they are required)."""
-        d = cls()
+    def from_config(cls, cfg: Any) -> ReuseSettings:
+        """Read the ``reuse`` block of a :class:`nrc.config.ConfigReader` of the ``renderer`` block (every key
+        required: the defaults live in ``conf/renderer/shared/wavefront.yaml``)."""
         r = cfg.block("reuse")
-        dflt = (lambda v: (v,)) if defaults else (lambda v: ())  # noqa: E731
-        dflt_kw = (lambda v: {"default": v}) if defaults else (lambda v: {})  # noqa: E731
-        kw = dflt_kw(d.mode)
-        settings = cls(mode=r.get_choice("mode", list(REUSE_MODES), **kw),
-                       neighbors=r.get_int("neighbors", *dflt(d.neighbors), lo=0),
-                       radius=r.get_float("radius", *dflt(d.radius), lo=1.0),
-                       history=r.get_float("history", *dflt(d.history), lo=0.0, lo_open=True),
-                       defer_g=r.get_float("defer_g", *dflt(d.defer_g), lo=0.0, hi=1.0),
-                       target=r.get_choice("target", list(REUSE_TARGETS), **dflt_kw(d.target)),
-                       mis=r.get_choice("mis", list(REUSE_MIS), **dflt_kw(d.mis)),
-                       domain=r.get_choice("domain", list(REUSE_DOMAINS), **dflt_kw(d.domain)),
-                       distance_candidates=r.get_int("distance_candidates", *dflt(d.distance_candidates), lo=1),
-                       distance_steps=r.get_int("distance_steps", *dflt(d.distance_steps), lo=1))
+        settings = cls(mode=r.get_choice("mode", list(REUSE_MODES)),
+                       neighbors=r.get_int("neighbors", lo=0),
+                       radius=r.get_float("radius", lo=1.0),
+                       history=r.get_float("history", lo=0.0, lo_open=True),
+                       defer_g=r.get_float("defer_g", lo=0.0, hi=1.0),
+                       target=r.get_choice("target", list(REUSE_TARGETS)),
+                       mis=r.get_choice("mis", list(REUSE_MIS)),
+                       domain=r.get_choice("domain", list(REUSE_DOMAINS)),
+                       distance_candidates=r.get_int("distance_candidates", lo=1),
+                       distance_steps=r.get_int("distance_steps", lo=1))
         r.finish()
         return settings
 

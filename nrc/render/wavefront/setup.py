@@ -25,7 +25,7 @@ from nrc.render.wavefront.program import VertexProgram
 from nrc.render.wavefront.state import FLIGHT, Layout
 from nrc.render.wavefront.step import StepOptions, Transport, Uniforms
 from nrc.transport.equiangular import EquiangularSampler
-from nrc.transport.light_sampling import LightSampler, LightTable
+from nrc.transport.light_sampling import LightSampler
 from nrc.transport.rng import uniforms as counter_uniforms
 from nrc.volume.grid import DensityGrid
 from nrc.volume.majorant import BrickTables, MajorantGrid
@@ -89,7 +89,7 @@ class Core:
         """The scene inputs with other lights of the same structure (an animated sun) and the vertex program's
         numbers of this frame (``frame``, e.g. ``renderer.debias``'s probability): only ``P`` changes."""
         albedo, g, max_scatter, thr, rr = self.scalars
-        P = self.step.params(self.grid, self.bricks, LightTable(lights), albedo, g, max_scatter, thr, rr, **frame)
+        P = self.step.params(self.grid, self.bricks, lights.table, albedo, g, max_scatter, thr, rr, **frame)
         return SceneInputs(P, self.inputs.density, self.inputs.majorant)
 
     def unsupported_reason(self) -> str | None:

@@ -63,18 +63,13 @@ class RussianRoulette:
     max_survival: float = 1.0
 
     @classmethod
-    def from_config(cls, renderer: Any, defaults: bool = False) -> tuple[bool, RussianRoulette]:
+    def from_config(cls, renderer: Any) -> tuple[bool, RussianRoulette]:
         """``(enabled, rule)`` from the ``russian_roulette`` block of a :class:`nrc.config.ConfigReader` of the
-        ``renderer`` block (``defaults``: missing keys take off, vertex 8 and this class's cap; otherwise they are
-        required, their defaults living in the YAML). Unknown keys of the block are errors."""
+        ``renderer`` block (every key required: the defaults live in ``conf/renderer/shared/wavefront.yaml``).
+        Unknown keys of the block are errors."""
         rr = renderer.block("russian_roulette")
-
-        def default(value: Any) -> tuple:
-            return (value,) if defaults else ()
-
-        enabled = rr.get_bool("enabled", *default(False))
-        rule = cls(rr.get_int("start", *default(8), lo=1),
-                   rr.get_float("max_survival", *default(cls.max_survival), lo=0.05, hi=1.0))
+        enabled = rr.get_bool("enabled")
+        rule = cls(rr.get_int("start", lo=1), rr.get_float("max_survival", lo=0.05, hi=1.0))
         rr.finish()
         return enabled, rule
 
@@ -112,7 +107,7 @@ class Transport:
     def __init__(self, program: VertexProgram, lights: LightSampler, n_tables: int, options: StepOptions,
                  uniforms: Uniforms = counter_uniforms) -> None:
         self.program = program
-        self.lights = table = LightTable(lights)
+        self.lights = table = lights.table
         self.sampler = None if table.supported else lights
         self.layout, self.n_tables, self.options = Layout.of(program), n_tables, options
         self.inline_shadow, self.roulette, self.rr = options.inline_shadow, options.roulette, options.russian_roulette

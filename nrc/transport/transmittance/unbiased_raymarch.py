@@ -6,7 +6,7 @@ Per ray, on its segment ``[a, b]`` inside the box (length ``L``):
    unbiased for ``tau``, exact for constant ``sigma_t``.
 2. **Tuple size** from a conservative control optical thickness ``tau_c = tau_major - tau_minor`` (brick
    majorant minus minorant integrated along the segment, :func:`nrc.transport.tracking.optical_depth_bounds`,
-   equal to ``MajorantGrid.integrate_bounds``): ``N_cmf = ceil(cbrt((0.015+tau_c)(0.65+tau_c)(60.3+tau_c)))``,
+   the sum over :func:`nrc.transport.tracking.majorant_segments`): ``N_cmf = ceil(cbrt((0.015+tau_c)(0.65+tau_c)(60.3+tau_c)))``,
    ``M = max(1, floor(N_cmf / 1.31945 + 0.5))`` (capped at ``max_m``).
 3. **Order** ``N`` by the aggressive Bhanot–Kennedy roulette (``p_z = 0.9``, ``K = 2``, ``c = 2``), truncated at
    ``max_order``: ``P(N >= k) = 1, 0.1, 0.1, 0.0667, 0.0333, 0.0133, ...`` (:func:`roulette_probabilities`).
