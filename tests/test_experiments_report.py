@@ -195,10 +195,11 @@ def test_crossover_summary_states_where_nrc_pays_off(tmp_path):
     rows = [{"config": "pt", "spp": 1, "whole_oidn_s": 70.0},
             {"config": "nrc", "whole_oidn_s": 66.0, "ratio_vs_pt_oidn": 0.8, "ratio_vs_pt": 0.2,
              "extrapolated_oidn": False}]
-    (a / "summary.json").write_text(json.dumps({"meta": {"argv": ["--frames", "60"]}, "animation": {
-        "rows": rows, "frames": 60, "scored_frames": [9, 19, 29, 39, 49, 59]}}))
+    (a / "summary.json").write_text(json.dumps({"meta": {"argv": ["--frames", "60", "--preset", "thick"]},
+                                                "animation": {"rows": rows, "frames": 60,
+                                                              "scored_frames": [9, 19, 29, 39, 49, 59]}}))
     (a / "animation.md").write_text("| the table |")
     text = ex.crossover_summary(tmp_path)
-    assert "A whole 60-frame animation of the turning sun" in text and "every 10th frame scored" in text
+    assert "A whole 60-frame animation of the turning sun (`scene=thick`, every 10th frame scored" in text
     assert "takes NRC 66 s with OIDN, and its error is 0.8x the path tracer + OIDN's" in text
     assert "| the table |" in ex.crossover_section(tmp_path)

@@ -245,3 +245,23 @@ def test_bench_nrc_frame_needs_more_frames_than_it_skips():
     r = subprocess.run([sys.executable, str(REPO / "scripts" / "bench_nrc_frame.py"), "--frames", "2", "--skip", "2"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "must exceed --skip" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_ctrl_c_inside_an_ahead_of_time_build_is_noted():
+    """Ctrl-C inside the AOT build still interrupts, and is noted: torch's tracing can turn the KeyboardInterrupt
+    into another exception, which the machine must not take for a failed build (and fall back to the JIT)."""
+    import os
+
+    from nrc.render.wavefront.machine import _InterruptWatch
+
+    before = signal.getsignal(signal.SIGINT)
+    if not callable(before):
+        pytest.skip("SIGINT is ignored in this process (an xdist worker)")
+    with pytest.raises(KeyboardInterrupt):
+        with _InterruptWatch() as watch:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+    assert watch.hit and signal.getsignal(signal.SIGINT) is before
+    with _InterruptWatch() as quiet:
+        pass
+    assert not quiet.hit

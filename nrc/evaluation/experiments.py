@@ -689,7 +689,8 @@ def crossover_summary(docs: Path, link: str = "[`docs/results.md`](docs/results.
     anim = _animation_row(docs)
     if anim is not None:
         a, r = anim
-        text += (f". A whole {a['frames']}-frame animation of the turning sun (optical depth ~100, every "
+        scene = a["preset"] if a["preset"].startswith("the ") else f"`scene={a['preset']}`"
+        text += (f". A whole {a['frames']}-frame animation of the turning sun ({scene}, every "
                  f"{a['scored_frames'][0] + 1}th frame scored, NRC from an untrained cache) takes NRC {r['whole_oidn_s']:.0f} s "
                  f"with OIDN, and its error is {r['ratio_vs_pt_oidn']:.2g}x the path tracer + OIDN's in the same "
                  f"whole-run time{' (extrapolated)' if r.get('extrapolated_oidn') else ''} (raw "
@@ -719,10 +720,16 @@ def _other_sizes(docs: Path) -> dict[str, dict]:
 
 
 def _animation_row(docs: Path) -> tuple[dict, dict] | None:
-    """``(animation, NRC row)`` of :data:`ANIMATION`'s ``summary.json`` (``scripts/bench_animation.py``)."""
-    a = (_read_json(docs / "results" / ANIMATION / "summary.json") or {}).get("animation")
+    """``(animation, NRC row)`` of :data:`ANIMATION`'s ``summary.json`` (``scripts/bench_animation.py``); the
+    animation gets ``preset``, the scene type its command named (``--preset``, else the default scene)."""
+    summary = _read_json(docs / "results" / ANIMATION / "summary.json") or {}
+    a = summary.get("animation")
     rows = [r for r in (a or {}).get("rows", []) if r.get("config") != "pt" and r.get("ratio_vs_pt_oidn")]
-    return (a, rows[0]) if rows else None
+    if not rows:
+        return None
+    argv = (summary.get("meta") or {}).get("argv") or []
+    preset = argv[argv.index("--preset") + 1] if "--preset" in argv[:-1] else "the default scene"
+    return {**a, "preset": preset}, rows[0]
 
 
 def crossover_section(docs: Path) -> list[str]:

@@ -73,6 +73,7 @@ from torch import Tensor
 
 from nrc.render.reuse.hook import ReuseHook
 from nrc.render.wavefront.program import VertexEvent
+from nrc.render.wavefront.setup import camera_rays
 from nrc.transport.light_sampling import LightSampler, luminance3, power_heuristic
 from nrc.transport.phase import hg_pdf
 
@@ -696,9 +697,8 @@ class DistanceReuse(ReservoirReuse):
         dev = self.grid.device
         ids = torch.arange(n, device=dev)
         pix = torch.div(ids, self.spp, rounding_mode="floor")
-        o, d = camera.generate_rays(pix, torch.rand(n, 2, generator=gen, device=dev))
+        o, d, ta, tb = camera_rays(camera, self.grid, pix, torch.rand(n, 2, generator=gen, device=dev))
         o, d = o.contiguous(), d.contiguous()
-        ta, tb = self.grid.box.intersect(o, d)
         ta = ta.clamp(min=0.0)
         valid = tb > ta
         tb = torch.where(valid, tb, ta)

@@ -7,6 +7,6 @@
 * :mod:`~nrc.render.wavefront.setup` (:func:`build_core`) -- majorants, the step, its scene inputs and the backend choice.
 """
 
-from nrc.render.wavefront.setup import BACKENDS, Core, build_core, camera_paths, wavefront_majorants
+from nrc.render.wavefront.setup import BACKENDS, Core, build_core, camera_paths, camera_rays, wavefront_majorants
 
-__all__ = ["BACKENDS", "Core", "build_core", "camera_paths", "wavefront_majorants"]
+__all__ = ["BACKENDS", "Core", "build_core", "camera_paths", "camera_rays", "wavefront_majorants"]

@@ -127,14 +127,15 @@ class Wavefront:
         machine: the step functions; inputs: the scene tensors.
         lights: the eager light sampler (environment radiance and pdf at harvest).
         slots: working-set size.
-        queues: the shadow and equi-angular queues.
+        queues: the shadow and equi-angular queues (default: none).
         collector: the renderer's collector (:mod:`nrc.render.wavefront.program`; default: ``pt``'s).
     """
 
     def __init__(self, machine: Machine, inputs: SceneInputs, lights: LightSampler, slots: int,
-                 queues: Queues = Queues(), collector: Collector | None = None) -> None:
+                 queues: Queues | None = None, collector: Collector | None = None) -> None:
         self.machine, self.inputs, self.lights, self.slots = machine, inputs, lights, slots
         self.layout: Layout = machine.step.layout
+        queues = queues if queues is not None else Queues()
         self.shadow, self.equiangular = queues.shadow, queues.equiangular
         self.collector = collector if collector is not None else Collector()
         self.counts = {"tracking_steps": 0, "shadow_steps": 0, "shadow_rays": 0, "scatter_events": 0,

@@ -19,6 +19,7 @@ import functools
 import hashlib
 import logging
 import os
+import signal
 import sys
 import threading
 import time
@@ -171,6 +172,30 @@ class _Package:
         return F, I
 
 
+class _InterruptWatch:
+    """Notes a SIGINT that arrives inside the block (the main thread's handler still runs): torch's tracing can
+    turn the ``KeyboardInterrupt`` it raises into another exception, which must not read as a failed build."""
+
+    hit = False
+
+    def __enter__(self) -> _InterruptWatch:
+        self._prev = None
+        if threading.current_thread() is threading.main_thread():
+            prev = signal.getsignal(signal.SIGINT)
+            if callable(prev):  # Python's handler (or the app's): wrap it; SIG_IGN / SIG_DFL stay as they are
+                def handler(signum: int, frame: Any) -> None:
+                    self.hit = True
+                    prev(signum, frame)
+
+                self._prev = prev
+                signal.signal(signal.SIGINT, handler)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._prev is not None:
+            signal.signal(signal.SIGINT, self._prev)
+
+
 def _build_package(fn: Any, args: tuple[Tensor, ...], options: dict[str, Any], path: Path) -> None:
     """Export ``fn`` (slot count and grid / table lengths dynamic, as in :func:`_compile`) and compile it into
     the package ``path`` (written whole, then renamed: a half-written package is never loaded)."""
@@ -253,8 +278,11 @@ class Machine:
                     log.warning("the compiled step %s cannot be loaded (%s); compiling it again", path.name,
                                 failure_line(exc) or type(exc).__name__)
             try:
-                _build_package(fn, args, options, path)
+                with _InterruptWatch() as interrupt:
+                    _build_package(fn, args, options, path)
             except Exception as exc:  # noqa: BLE001 -- an op export cannot take: the JIT compiles it
+                if interrupt.hit:  # Ctrl-C inside torch's tracing can surface as another error: still a stop
+                    raise KeyboardInterrupt from exc
                 log.info("ahead-of-time compile of the step failed (%s: %s); using torch.compile", type(exc).__name__,
                          failure_line(exc))
                 self.packages = None

@@ -181,12 +181,19 @@ def build_core(scene: Any, transmittance: Any, settings: Any, program: VertexPro
                 point_lights=tuple(st.light_sampling.equiangular_points(scene)))
 
 
+def camera_rays(camera: Any, grid: DensityGrid, pix: Tensor, jitter: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(o, d, t0, t1)``: the camera rays through pixels ``pix`` ``(N,)`` at sub-pixel ``jitter`` ``(N, 2)`` and
+    their span in the medium's box (``t0 >= t1`` where a ray misses it). The one place camera rays are made."""
+    o, d = camera.generate_rays(pix, jitter)
+    t0, t1 = grid.box.intersect(o, d)
+    return o, d, t0, t1
+
+
 def camera_paths(layout: Layout, camera: Any, grid: DensityGrid, pix: Tensor, jitter: Tensor,
                  key: Tensor) -> tuple[Tensor, Tensor]:
     """Packed state of new camera paths through pixels ``pix`` ``(N,)`` at sub-pixel ``jitter`` ``(N, 2)`` with
     RNG keys ``key``: origin at the camera, clipped to the box, throughput 1, accumulating into row ``pix``."""
-    o, d = camera.generate_rays(pix, jitter)
-    t0, t1 = grid.box.intersect(o, d)
+    o, d, t0, t1 = camera_rays(camera, grid, pix, jitter)
     F, I = layout.zeros(len(pix), pix.device)
     F[layout.f("o")], F[layout.f("d")], F[layout.f("t")], F[layout.f("tmax")] = o.T, d.T, t0, t1
     F[layout.f("beta")] = 1.0
