@@ -377,7 +377,7 @@ def test_path_tracer_with_reuse_agrees_with_the_path_tracer(scene, mode, target,
 def test_compiled_step_structure_with_distance_reuse_agrees_with_the_eager_step():
     """The compiled backend's step structure (run eagerly: the code the compiled backend compiles) with
     ``domain=distance``, whose first vertex does no next-event estimate and does not count the sky its phase
-    direction reaches (``reuse_light_only``), against the eager step with the same reuse, block-wise over 8
+    direction reaches (``ReuseHook.light_only``), against the eager step with the same reuse, block-wise over 8
     seeds each; and the structure's key names the light-only variant (one compiled graph per variant)."""
 
     def renders(structure: bool, first: int) -> list[np.ndarray]:
