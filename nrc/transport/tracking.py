@@ -37,6 +37,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from nrc.volume.majorant import BrickTables, next_segment
+
 if TYPE_CHECKING:  # pragma: no cover
     from nrc.volume.grid import DensityGrid
     from nrc.volume.majorant import MajorantGrid
@@ -116,19 +118,12 @@ def clip_segments(
 DELTA, RATIO, RESIDUAL, BOUNDS = "delta", "ratio", "residual", "bounds"
 
 # Columns of the per-ray walk state (one float32 row per ray, so compaction is a single index_select).
-_T, _TAU, _RATE, _CTRL, _TAUC, _PROD, _B = 0, 1, 2, 3, 4, 5, 6
-_TN = slice(7, 10)  # t of the next brick plane per axis
-_CELL = slice(10, 13)  # brick coordinates (exact small integers as floats)
-_TD = slice(13, 16)  # t between planes per axis
-_STEP = slice(16, 19)  # +-1 / 0 per axis
-_TN_CELL = slice(7, 13)  # advanced together by (TD, STEP)
-_TD_STEP = slice(13, 19)
-_O = slice(19, 22)
-_D = slice(22, 25)
-_RES = 25  # delta: collision distance
-_SKIP = 26  # empty-space radius of the current brick (see skip_radius)
-_NCOL = 27
-_FAR = 1e30  # plane spacing along an axis the ray does not move on (finite, so 0 * _FAR = 0)
+_T, _TAU, _RATE, _CTRL, _TAUC, _PROD, _B, _TX = 0, 1, 2, 3, 4, 5, 6, 7  # _TX: where the current segment ends
+_O = slice(8, 11)
+_D = slice(11, 14)
+_RES = 14  # delta: collision distance; bounds: the brick's minorant
+_NCOL = 15
+_FOLD = 1e30  # residual ratio tracking: prod above this takes exp(-tauc) in (see track)
 
 MAX_SKIP = 16
 _skip_cache: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -157,10 +152,10 @@ def skip_radius(majorants: MajorantGrid, max_radius: int = MAX_SKIP) -> Tensor:
 
 class MajorantWalk:
     """The batched majorant walk of the eager code (the estimators, equi-angular sampling, the optical-depth
-    bounds): a brick DDA (Amanatides & Woo) over a :class:`~nrc.volume.majorant.MajorantGrid` whose rays advance
-    lazily, one brick (or one empty cube) per inner step, only where the current exponential sample reaches past
-    the current brick. The compiled transport step's form of the same bricks is
-    :meth:`nrc.volume.majorant.BrickTables.segment` (stateless: the brick of the ray's current point).
+    bounds) over a :class:`~nrc.volume.majorant.MajorantGrid`: the rays advance lazily, one brick (or one empty
+    cube, :func:`skip_radius`) per inner step, only where the current exponential sample reaches past the current
+    brick. Each step is :func:`nrc.volume.majorant.next_segment`, the same stateless brick step the compiled
+    transport step runs (the state is the ray's point: no DDA bookkeeping across compaction).
     :func:`majorant_segments` iterates it segment by segment."""
 
     def __init__(self, grid, majorants, kind: str, mode: str) -> None:
@@ -178,22 +173,21 @@ class MajorantWalk:
                 self.rate_grid, self.ctrl_grid, self.min_grid = torch.zeros_like(maj), maj, mnr
             else:
                 self.rate_grid, self.ctrl_grid = maj, None
-            nb = majorants.shape
-            dev = maj.device
-            self.nb = nb
-            self.hi = torch.tensor(nb, dtype=torch.float32, device=dev) - 1
-            self.zero3 = torch.zeros(3, dtype=torch.float32, device=dev)
-            self.strides = torch.tensor([nb[1] * nb[2], nb[2], 1], dtype=torch.long, device=dev)
             self.size = float(majorants.brick_size)
-            # low corner of brick (0, 0, 0) (the brick lattice need not start at the box corner)
-            self.lo = getattr(majorants, "origin", majorants.grid.box.lo).to(torch.float32)
-            self.skip_grid = skip_radius(majorants).reshape(-1)
+            # the grid's brick table (origin, last index, strides, edge, offset 0) as 0-d tensors
+            values = BrickTables(majorants, majorants).values
+            self.table = torch.tensor(values, dtype=torch.float32, device=maj.device).unbind(0)
+            # half-width in bricks of the empty cube around each brick (0: a non-empty brick)
+            self.reach_grid = (skip_radius(majorants).reshape(-1) - 1.0).clamp(min=0.0)
 
-    def _brick_params(self, S: Tensor) -> None:
-        """Set the rate (and control) columns from the brick coordinates."""
-        flat = (S[:, _CELL].long() * self.strides).sum(dim=1)
+    def _enter(self, S: Tensor) -> None:
+        """The brick (or empty cube) the rows of ``S`` are in at their ``t``: its end and its rates."""
+        t, b = S[:, _T], S[:, _B]
+        nudge = torch.minimum((b - t).clamp(min=0.0), torch.full_like(t, 1e-4 * self.size))
+        o = (S[:, _O.start], S[:, _O.start + 1], S[:, _O.start + 2])
+        d = (S[:, _D.start], S[:, _D.start + 1], S[:, _D.start + 2])
+        flat, S[:, _TX] = next_segment(self.table, o, d, t, nudge, self.reach_grid.__getitem__)
         S[:, _RATE] = self.rate_grid[flat]
-        S[:, _SKIP] = self.skip_grid[flat]
         if self.ctrl_grid is not None:
             S[:, _CTRL] = self.ctrl_grid[flat]
         if self.min_grid is not None:
@@ -211,47 +205,26 @@ class MajorantWalk:
         S[:, _RES] = b
         if not self.brick:
             S[:, _RATE] = self.m_glob
-            S[:, _TN] = math.inf
+            S[:, _TX] = math.inf
             return S
-        # entry brick: the brick of a point a hair inside the segment (entry points on faces may round out)
-        nudge = torch.minimum(b - a, torch.full_like(a, 1e-4 * self.size))
-        p = o + (a + nudge)[:, None] * d
-        cell = torch.clamp(((p - self.lo) / self.size).floor(), min=self.zero3, max=self.hi)
-        step = torch.sign(d)
-        plane = self.lo + (cell + (step > 0).to(torch.float32)) * self.size
-        zero = d == 0
-        safe = torch.where(zero, torch.ones_like(d), d)
-        S[:, _TN] = torch.where(zero, torch.full_like(d, math.inf), torch.maximum((plane - o) / safe, a[:, None]))
-        S[:, _TD] = torch.where(zero, torch.full_like(d, _FAR), self.size / safe.abs())
-        S[:, _CELL] = cell
-        S[:, _STEP] = step
-        self._brick_params(S)
+        self._enter(S)
         return S
 
     @staticmethod
     def needs_advance(S: Tensor) -> Tensor:
         """Rays whose remaining exponential sample reaches past their current brick (or segment end)."""
-        t_exit = torch.minimum(S[:, _TN].amin(dim=1), S[:, _B])
+        t_exit = torch.minimum(S[:, _TX], S[:, _B])
         return S[:, _TAU] >= S[:, _RATE] * (t_exit - S[:, _T])
 
     def advance(self, S: Tensor, sub: Tensor | None) -> None:
-        """Move the rays ``sub`` (row indices of ``S``, in place) across one brick: their exponential sample
-        reaches past the current brick, so they consume its majorant optical depth and step to the next brick
-        (or to their segment end, ``t = b``). A zero-majorant brick is crossed in this one step, and so is the
-        whole empty cube of radius ``r`` around it (:func:`skip_radius`): the ray exits the cube through the
-        ``r``-th plane of some axis and every axis advances by the number of its planes crossed on the way.
-        ``sub=None`` moves every row (in place, no gather)."""
+        """Move the rays ``sub`` (row indices of ``S``, in place) across their current segment: their exponential
+        sample reaches past it, so they consume its majorant optical depth and enter the next brick (or reach their
+        segment end, ``t = b``). A zero-majorant brick is crossed in this one step, and so is the whole empty cube
+        around it (:func:`skip_radius`). ``sub=None`` moves every row (in place, no gather)."""
         R = S if sub is None else S.index_select(0, sub)
         t = R[:, _T]
         b = R[:, _B]
-        tn = R[:, _TN]
-        if self.brick:
-            reach = R[:, _SKIP].clamp(min=1.0)[:, None]  # planes per axis that bound the empty cube
-            td = R[:, _TD]
-            t_jump = (tn + (reach - 1.0) * td).amin(dim=1)
-        else:
-            t_jump = tn.amin(dim=1)
-        t_exit = torch.maximum(torch.minimum(t_jump, b), t)
+        t_exit = torch.maximum(torch.minimum(R[:, _TX], b), t)
         dt = t_exit - t
         R[:, _TAU].sub_(R[:, _RATE] * dt).clamp_(min=0.0)
         if self.kind == RESIDUAL:
@@ -261,11 +234,7 @@ class MajorantWalk:
             R[:, _PROD].add_(R[:, _RES] * dt)
         R[:, _T] = t_exit
         if self.brick:
-            # planes crossed per axis up to t_exit (>= 1 on the exit axis; exact ties cross together)
-            count = torch.minimum((((t_exit[:, None] - tn) / td).floor() + 1.0).clamp(min=0.0), reach)
-            R[:, _TN_CELL] += count.repeat(1, 2) * R[:, _TD_STEP]
-            R[:, _CELL] = torch.clamp(R[:, _CELL], min=self.zero3, max=self.hi)
-            self._brick_params(R)
+            self._enter(R)
         if sub is not None:
             S.index_copy_(0, sub, R)
 
@@ -418,6 +387,11 @@ def track(
                 ctrl = R[:, _CTRL]
                 tauc = R[:, _TAUC] + ctrl * (tc - t)
                 prod = R[:, _PROD] * (1.0 - (sigma - ctrl) / rate).clamp(min=0.0)  # (rounding, as above)
+                # the factors are <= 2: over thousands of collisions (a dense medium) prod would overflow while
+                # exp(-tauc) underflows (0 x inf = NaN); fold the control's share in before (w unchanged)
+                big = prod > _FOLD
+                prod = torch.where(big, prod * torch.exp(-tauc), prod)
+                tauc = torch.where(big, torch.zeros_like(tauc), tauc)
                 w = torch.exp(-tauc) * prod
                 if thr > 0:
                     small = w < thr

@@ -23,6 +23,7 @@ build a new one when the scale changes.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -130,16 +131,37 @@ class BrickTables:
                 return v0
             return torch.where(shadow, tables[1][j] + torch.zeros_like(t), v0)
 
-        size = per_slot(9)
-        tn = t + size * 1e-4
-        idx = per_slot(10).long()
-        t_exit = None
-        for a in range(3):
-            org = per_slot(a)
-            c = ((o[a] + tn * d[a] - org) / size).floor().nan_to_num(0.0, 0.0, 0.0).clamp(min=0.0)
-            c = torch.minimum(c, per_slot(3 + a))
-            bound = org + (c + (d[a] > 0).to(c.dtype)) * size
-            tb = torch.where(d[a] != 0, (bound - o[a]) / d[a], torch.full_like(t, math.inf))
-            t_exit = tb if t_exit is None else torch.minimum(t_exit, tb)
-            idx = idx + c.long() * per_slot(6 + a).long()
-        return flat[idx], torch.maximum(t_exit, tn)
+        idx, t_exit = next_segment([per_slot(j) for j in range(BrickTables.PER_TABLE)], o, d, t)
+        return flat[idx], t_exit
+
+
+def next_segment(table: list, o: tuple, d: tuple, t: Tensor, nudge: Tensor | None = None,
+                 reach_of: Callable[[Tensor], Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """The one step of the brick walk, stateless: ``(index, t_exit)`` ``(N,)`` of the brick each ray ``o + t d``
+    (component form) is in at ``t`` -- its index into the flat brick tables and the distance at which the ray
+    leaves it. The compiled transport step calls it on every slot (:meth:`BrickTables.segment`); the eager code's
+    walk (:class:`nrc.transport.tracking.MajorantWalk`) loops over it.
+
+    ``table``: one grid's :attr:`BrickTables.values` entries (origin (3), last brick index (3), flat stride (3),
+    brick edge, offset), as 0-d or per-ray tensors. The brick is the one holding the point ``nudge`` further on
+    (default ``1e-4`` brick edges: a point on a face belongs to the brick it enters); ``t_exit >= t + nudge``.
+    ``reach_of(index)``: the half-width, in bricks, of an empty cube centred on the brick that the ray may cross in
+    this one step (:func:`nrc.transport.tracking.skip_radius`); ``None``: one brick."""
+    size = table[9]
+    tn = t + (size * 1e-4 if nudge is None else nudge)
+    idx = table[10].long()
+    cells = []
+    for a in range(3):
+        c = ((o[a] + tn * d[a] - table[a]) / size).floor().nan_to_num(0.0, 0.0, 0.0).clamp(min=0.0)
+        c = torch.minimum(c, table[3 + a])
+        cells.append(c)
+        idx = idx + c.long() * table[6 + a].long()
+    reach = None if reach_of is None else reach_of(idx)
+    t_exit = None
+    for a, c in enumerate(cells):
+        up = d[a] > 0
+        shift = up.to(c.dtype) if reach is None else torch.where(up, 1.0 + reach, -reach)
+        bound = table[a] + (c + shift) * size
+        tb = torch.where(d[a] != 0, (bound - o[a]) / d[a], torch.full_like(t, math.inf))
+        t_exit = tb if t_exit is None else torch.minimum(t_exit, tb)
+    return idx, torch.maximum(t_exit, tn)
