@@ -7,8 +7,8 @@ is float32, and nothing loops over rays: the loop runs over events on a compacte
 Majorants. Two modes share one loop (:func:`track`):
 
 * ``"global"``: one constant majorant ``m = majorants.global_majorant`` on the ray's segment inside the box.
-* ``"brick"``: the per-brick majorants of :class:`~nrc.volume.majorant.MajorantGrid`, walked with a batched 3-D
-  DDA (Amanatides & Woo). Each ray holds one exponential sample ``tau ~ Exp(1)`` of majorant optical depth.
+* ``"brick"``: the per-brick majorants of :class:`~nrc.volume.majorant.MajorantGrid`, walked by the stateless
+  brick step :func:`nrc.volume.majorant.next_segment` (the compiled transport step's own). Each ray holds one exponential sample ``tau ~ Exp(1)`` of majorant optical depth.
   When ``tau`` exceeds what is left of the current brick (``majorant * distance to the brick exit``), the ray
   consumes that much and steps to the next brick (by memorylessness this is the same as restarting the
   exponential at the boundary, minus one random number); otherwise it takes a tentative collision at

@@ -1,7 +1,9 @@
-"""Brick majorant grid for empty-space skipping, and its tables for the compiled transport step.
+"""Brick majorant grid for empty-space skipping, its tables for the compiled transport step, and the one step of
+the brick walk.
 
-The eager code walks the bricks with :class:`nrc.transport.tracking.MajorantWalk` (a batched 3-D DDA); the
-compiled step finds a ray's brick and its exit from the ray's current point (:meth:`BrickTables.segment`).
+:func:`next_segment` is that step (pbrt-v4's majorant iterator in tensor form, stateless): the brick a ray is in
+at its current point and where it leaves it. The compiled transport step calls it on every slot
+(:meth:`BrickTables.segment`); the eager code's :class:`nrc.transport.tracking.MajorantWalk` loops over it.
 
 Bricks live on the lattice of cell *centres* (the lattice trilinear interpolation works on): in continuous
 cell coordinates ``u`` (cell ``i`` spans ``[i, i + 1]``, its centre is ``i + 0.5``) brick ``b`` spans
@@ -95,8 +97,8 @@ class BrickTables:
     Table 0 serves free flights and table 1 shadow rays (one table when both use the same grid). A step finds
     a ray's brick from its current point, nudged ``1e-4`` brick edges along the ray (a point on a face
     belongs to the brick it enters), and the distance to that brick's exit (:meth:`segment`). No traversal
-    state is carried between steps (unlike the eager code's :class:`nrc.transport.tracking.MajorantWalk`), so
-    refills, shadow rays and compaction need no bookkeeping.
+    state is carried between steps (:func:`next_segment`), so refills, shadow rays and compaction need no
+    bookkeeping.
 
     Args:
         free_flight, shadow: the :class:`MajorantGrid` of each kind of ray.
