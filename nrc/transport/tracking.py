@@ -114,6 +114,19 @@ def clip_segments(
     return o, torch.where(empty, zero, near), torch.where(empty, zero, far)
 
 
+def ratio_step(T: Tensor, sigma: Tensor, majorant: Tensor, u: Tensor | None = None,
+               threshold: Tensor | float | None = None) -> Tensor:
+    """One tentative collision of ratio tracking, written once for the eager estimators (:func:`track`) and the
+    compiled transport step's shadow rays: ``T (1 - sigma / majorant)`` (``sigma`` may exceed the majorant by
+    rounding only -- beyond :data:`MAJORANT_RTOL` the eager loop raises -- and such a null-collision probability is
+    0, not a tiny negative number); then, with a ``threshold``, the roulette: a weight below it survives with
+    probability ``T`` (the uniform ``u``) and goes on with 1, else stops with 0 (unbiased)."""
+    T = T * (1.0 - sigma / majorant.clamp(min=1e-30)).clamp(min=0.0)
+    if threshold is not None:
+        T = torch.where(T < threshold, (u < T).to(T.dtype), T)
+    return T
+
+
 # ---------------------------------------------------------------------------------------------- core loop
 DELTA, RATIO, RESIDUAL, BOUNDS = "delta", "ratio", "residual", "bounds"
 
@@ -376,11 +389,7 @@ def track(
                 fin = u[:, 1] * rate < sigma
                 R[:, _RES] = torch.where(fin, tc, R[:, _RES])
             elif kind == RATIO:
-                # sigma may exceed the majorant by rounding only (beyond MAJORANT_RTOL it raises below): such a
-                # null-collision probability is 0, not a tiny negative number
-                w = R[:, _PROD] * (1.0 - sigma / rate).clamp(min=0.0)
-                if thr > 0:
-                    w = torch.where(w < thr, (u[:, 1] < w).to(w.dtype), w)
+                w = ratio_step(R[:, _PROD], sigma, rate, u[:, 1], thr if thr > 0 else None)
                 R[:, _PROD] = w
                 fin = w == 0
             else:

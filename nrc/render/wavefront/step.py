@@ -44,6 +44,7 @@ from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Lay
 from nrc.transport.light_sampling import LightSampler, LightTable, power_heuristic, resample
 from nrc.transport.phase import hg_pdf, hg_sample_v3
 from nrc.transport.rng import uniforms as counter_uniforms
+from nrc.transport.tracking import ratio_step
 from nrc.volume.box import box_exit
 from nrc.volume.grid import trilinear
 from nrc.volume.majorant import BrickTables
@@ -197,12 +198,9 @@ class Transport:
         # whose voxels stay in cache (a brick crossing or an idle slot costs no memory traffic).
         need = hit & (run_ff | sh)
         sigma = scale * trilinear(density, dims, lo, hi, _where3(need, x, lo))
-        nul = (1.0 - sigma / m.clamp(min=1e-30)).clamp(min=0.0)
 
         # Shadow rays: ratio tracking (with roulette); the contribution lands in L when the ray ends.
-        Tn = torch.where(hit, s.tr * nul, s.tr)
-        if self.roulette:
-            Tn = torch.where(hit & (Tn < thr), (u1 < Tn).to(Tn.dtype), Tn)
+        Tn = torch.where(hit, ratio_step(s.tr, sigma, m, u1, thr if self.roulette else None), s.tr)
         sh_end = sh & (passed | (Tn == 0))
         row = self.row_of(s)
         gain = tuple(torch.where(sh_end, c * Tn, zero) for c in s.csh)
