@@ -8,7 +8,8 @@ Majorants. Two modes share one loop (:func:`track`):
 
 * ``"global"``: one constant majorant ``m = majorants.global_majorant`` on the ray's segment inside the box.
 * ``"brick"``: the per-brick majorants of :class:`~nrc.volume.majorant.MajorantGrid`, walked by the stateless
-  brick step :func:`nrc.volume.majorant.next_segment` (the compiled transport step's own). Each ray holds one exponential sample ``tau ~ Exp(1)`` of majorant optical depth.
+  brick step :func:`nrc.volume.majorant.next_segment` (the compiled transport step's own). Each ray holds one
+  exponential sample ``tau ~ Exp(1)`` of majorant optical depth.
   When ``tau`` exceeds what is left of the current brick (``majorant * distance to the brick exit``), the ray
   consumes that much and steps to the next brick (by memorylessness this is the same as restarting the
   exponential at the boundary, minus one random number); otherwise it takes a tentative collision at
@@ -188,10 +189,13 @@ class MajorantWalk:
                 self.rate_grid, self.ctrl_grid = maj, None
             self.size = float(majorants.brick_size)
             # the grid's brick table (origin, last index, strides, edge, offset 0) as 0-d tensors
-            values = BrickTables(majorants, majorants).values
+            values = BrickTables.grid_values(majorants)
             self.table = torch.tensor(values, dtype=torch.float32, device=maj.device).unbind(0)
-            # half-width in bricks of the empty cube around each brick (0: a non-empty brick)
-            self.reach_grid = (skip_radius(majorants).reshape(-1) - 1.0).clamp(min=0.0)
+            self.skip_grid = skip_radius(majorants).reshape(-1)  # cached per majorant grid
+
+    def _reach(self, flat: Tensor) -> Tensor:
+        """Half-width in bricks of the empty cube around bricks ``flat`` (0: a non-empty brick)."""
+        return (self.skip_grid[flat] - 1.0).clamp(min=0.0)
 
     def _enter(self, S: Tensor) -> None:
         """The brick (or empty cube) the rows of ``S`` are in at their ``t``: its end and its rates."""
@@ -199,7 +203,7 @@ class MajorantWalk:
         nudge = torch.minimum((b - t).clamp(min=0.0), torch.full_like(t, 1e-4 * self.size))
         o = (S[:, _O.start], S[:, _O.start + 1], S[:, _O.start + 2])
         d = (S[:, _D.start], S[:, _D.start + 1], S[:, _D.start + 2])
-        flat, S[:, _TX] = next_segment(self.table, o, d, t, nudge, self.reach_grid.__getitem__)
+        flat, S[:, _TX] = next_segment(self.table, o, d, t, nudge, self._reach)
         S[:, _RATE] = self.rate_grid[flat]
         if self.ctrl_grid is not None:
             S[:, _CTRL] = self.ctrl_grid[flat]

@@ -113,10 +113,15 @@ class BrickTables:
         self.values: list[float] = []
         offset = 0
         for g in grids:
-            self.values += [float(v) for v in g.origin.tolist()]
-            self.values += [float(n - 1) for n in g.shape]
-            self.values += [float(g.shape[1] * g.shape[2]), float(g.shape[2]), 1.0, float(g.brick_size), float(offset)]
+            self.values += self.grid_values(g, offset)
             offset += g.majorant.numel()
+
+    @staticmethod
+    def grid_values(g: MajorantGrid, offset: int = 0) -> list[float]:
+        """One grid's :data:`PER_TABLE` values: origin (3), last brick index (3), flat stride (3), brick edge,
+        offset of its first brick in the flat table."""
+        return ([float(v) for v in g.origin.tolist()] + [float(n - 1) for n in g.shape]
+                + [float(g.shape[1] * g.shape[2]), float(g.shape[2]), 1.0, float(g.brick_size), float(offset)])
 
     @staticmethod
     def segment(flat: Tensor, values: list, n_tables: int, o: tuple, d: tuple, t: Tensor,

@@ -223,8 +223,7 @@ class NRCPathTracer:
                           torch.zeros(ps.n_train * V, 3, device=dev),
                           torch.zeros(ps.n_train * V, dtype=torch.bool, device=dev),
                           torch.zeros(ps.n_train, dtype=torch.bool, device=dev), discard + 1 if indirect else None,
-                          debias_q=debias_q if self.debias else 0.0, suffix_base=suffix_base,
-                          debias_indirect=indirect, watchers=(rec,))
+                          debias_q=debias_q if self.debias else 0.0, suffix_base=suffix_base, watchers=(rec,))
         queues = Queues(core.shadow_queue(machine, self.shadow_batch, rng.generator),
                         core.equiangular_queue(self.shadow_batch, rng.generator))
         frame = {"debias_q": debias_q} if self.debias else {}

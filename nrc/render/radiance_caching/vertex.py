@@ -37,15 +37,11 @@ import torch
 from torch import Tensor
 
 from nrc.render.wavefront.program import Collector, Decision, VertexEvent, VertexProgram
-from nrc.render.wavefront.state import QUERY
+from nrc.render.wavefront.state import QUERY, where3
 
 # ``never`` of a render path continued past its cache termination (renderer.debias): its contributions from there
 # on go to accumulator row 1, the suffix row (the collector maps it to the sample's own row of the accumulator)
 CONTINUED = 2
-
-
-def _where3(m: Tensor, a: tuple, b: tuple) -> tuple:
-    return tuple(torch.where(m, x, y) for x, y in zip(a, b))
 
 
 def just_continued(never_before: Tensor, never_after: Tensor) -> Tensor:
@@ -132,7 +128,7 @@ class NRCVertex(VertexProgram):
         beta_s = tuple(torch.where(recorded, albedo + zero, b) for b in beta_s)
         s.rec = torch.where(recorded, s.rec_base + n_s - 1, torch.full_like(s.rec, -1))
         s.spread, s.a0, s.n_term = spread, a0, n_term
-        s.x_prev = _where3(go, x, s.x_prev)
+        s.x_prev = where3(go, x, s.x_prev)
         # the vertex does next-event estimation: a scattering one; with cache_target=indirect a terminating one too
         nee = go if self.cache_target == "full" else torch.ones_like(go)
         mis = go & ~cont if self.indirect_debias else go
@@ -171,11 +167,16 @@ class NRCCollector(Collector):
     debias_q: float = 0.0
     suffix_base: int | None = None
     continued: dict[str, list[Tensor]] = field(default_factory=lambda: {"pid": [], "beta": []})
-    debias_indirect: bool = False  # cache_target=indirect: the continued vertex's own estimate stays in the pixel
     watchers: tuple = ()  # objects with record(VertexEvent) (the reuse pass's vertex record)
 
     def __post_init__(self) -> None:
         self.watchers = tuple(w for w in self.watchers if w is not None)
+
+    @property
+    def indirect(self) -> bool:
+        """``cache_target=indirect``: a terminating vertex estimates its direct light, which goes to the record's
+        direct-light rows; a continued vertex's own estimate stays in the pixel (``renderer.debias``)."""
+        return self.direct_base is not None
 
     # ------------------------------------------------------------------ rows
     def rows(self, ly: Any, I: Tensor, j: Tensor | int) -> Tensor:
@@ -204,7 +205,7 @@ class NRCCollector(Collector):
 
     def shadow_rows(self, ly: Any, I: Tensor, here: Any, qd: Tensor) -> Tensor:
         rows = self.direct_rows(ly, I)
-        if here is not None and self.debias_indirect:  # the continued vertex's own estimate: the pixel's
+        if here is not None and self.indirect:  # the continued vertex's own estimate: the pixel's
             rows = torch.where(here[qd], I[ly.i("dest")], rows)
         return rows
 
@@ -265,10 +266,10 @@ class NRCCollector(Collector):
         (full)."""
         render = I_in[ly.i("rec_base")] < 0
         go = I_out[ly.i("flight")] != QUERY
-        nee = go | (self.direct_base is not None)
+        nee = go | self.indirect
         mis, scale = go, torch.ones(len(go), device=F_in.device)
         if here is not None:
-            if self.debias_indirect:
+            if self.indirect:
                 mis = mis & ~here
             else:
                 scale = torch.where(here, scale / self.debias_q, scale)

@@ -47,6 +47,11 @@ _FLOAT = [("o", 3), ("d", 3), ("t", 1), ("tmax", 1), ("beta", 3), ("pdf", 1), ("
 _INT = ["dest", "key", "cnt", "n", "flight", "shadow", "occupied", "n_shadow_steps"]
 
 
+def where3(m: Tensor, a: tuple, b: tuple) -> tuple:
+    """Component-wise ``torch.where(m, a, b)`` of 3-vectors in component form (the state's vectors)."""
+    return tuple(torch.where(m, x, y) for x, y in zip(a, b))
+
+
 @dataclass
 class PathState:
     """The unpacked state: every attribute an ``(S,)`` tensor, a 3-tuple of them, or (``L``) a tuple of
@@ -100,10 +105,6 @@ class Layout:
         for k, name in enumerate(_INT + list(self.extra_int)):
             self._i[name] = k
         object.__setattr__(self, "ni", len(self._i))
-
-    def has(self, name: str) -> bool:
-        """The layout holds field ``name``."""
-        return name in self._f or name in self._i
 
     def f(self, name: str) -> slice | int:
         """Row index (scalar field) or row slice (vector field) of float field ``name`` in ``F``."""

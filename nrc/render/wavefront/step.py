@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from nrc.render.wavefront.program import VertexProgram
-from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState
+from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState, where3
 from nrc.transport.light_sampling import LightSampler, LightTable, power_heuristic, resample
 from nrc.transport.phase import hg_pdf, hg_sample_v3
 from nrc.transport.rng import uniforms as counter_uniforms
@@ -89,10 +89,6 @@ class StepOptions:
     on survives with ``q = clamp(max throughput, 0.05, q_max)``, weight ``1 / q``)."""
 
 
-def _where3(m: Tensor, a: tuple, b: tuple) -> tuple:
-    return tuple(torch.where(m, x, y) for x, y in zip(a, b))
-
-
 class Transport:
     """The step functions for one structure (see the module docstring).
 
@@ -110,7 +106,7 @@ class Transport:
         self.program = program
         self.lights = table = lights.table
         self.sampler = None if table.supported else lights
-        self.layout, self.n_tables, self.options = Layout.of(program), n_tables, options
+        self.layout, self.n_tables = Layout.of(program), n_tables
         self.inline_shadow, self.roulette, self.rr = options.inline_shadow, options.roulette, options.russian_roulette
         self.uniforms = uniforms
         # vertex lanes: phase (2), then Russian roulette, the program's, the light choice
@@ -184,7 +180,7 @@ class Transport:
         zero = torch.zeros_like(s.t)
 
         run_ff = ff & ~sh
-        dr = _where3(sh, s.wi, s.d)
+        dr = where3(sh, s.wi, s.d)
         tr = torch.where(sh, s.ts, s.t)
         te = torch.where(sh, s.tse, s.tmax)
         m, t_brick = BrickTables.segment(majorant, bricks, self.n_tables, s.o, dr, tr, sh)
@@ -197,7 +193,7 @@ class Transport:
         # Only tentative collisions of running rays need the density; the others look up the box corner,
         # whose voxels stay in cache (a brick crossing or an idle slot costs no memory traffic).
         need = hit & (run_ff | sh)
-        sigma = scale * trilinear(density, dims, lo, hi, _where3(need, x, lo))
+        sigma = scale * trilinear(density, dims, lo, hi, where3(need, x, lo))
 
         # Shadow rays: ratio tracking (with roulette); the contribution lands in L when the ray ends.
         Tn = torch.where(hit, ratio_step(s.tr, sigma, m, u1, thr if self.roulette else None), s.tr)
@@ -214,7 +210,7 @@ class Transport:
         s.t = torch.where(run_ff & ~passed & ~real, tx, s.t)
         at_limit = real & (s.n.to(torch.float32) >= max_scatter)  # the last vertex's continuation collided
         scat = real & ~at_limit
-        s.o = _where3(scat, x, s.o)
+        s.o = where3(scat, x, s.o)
         s.flight = torch.where(scat, VERTEX, torch.where(esc, ESCAPED, torch.where(at_limit, DONE, s.flight)))
         s.shadow = (sh & ~sh_end).long()
         s.n_shadow_steps = s.n_shadow_steps + sh.long()
@@ -283,18 +279,18 @@ class Transport:
         d_s, pdf_s = hg_sample_v3(g, d, u[2], u[3])
         t_far = box_exit(lo, hi, x, d_s)
 
-        s.d = _where3(go, d_s, d)
+        s.d = where3(go, d_s, d)
         s.t = torch.where(go, zero, s.t)
         s.tmax = torch.where(go, t_far, s.tmax)
-        s.beta = _where3(go, beta_s, s.beta)
+        s.beta = where3(go, beta_s, s.beta)
         # pdf < 0 marks a segment whose escape does not count the environment (Decision.skip_env)
         no_env = dec.skip_env
         s.pdf = torch.where(go, torch.where(no_env, -pdf_s, pdf_s) if no_env is not None else pdf_s, s.pdf)
-        s.wi = _where3(nee, wi, s.wi)
+        s.wi = where3(nee, wi, s.wi)
         s.ts = torch.where(nee, zero, s.ts)
         s.tse = torch.where(nee, tse, s.tse)
         s.tr = torch.where(nee, zero + 1.0, s.tr)
-        s.csh = _where3(nee, csh, s.csh)
+        s.csh = where3(nee, csh, s.csh)
         s.n = torch.where(go, n_s, s.n)
         s.flight = torch.where(go, torch.where(stop, DONE, FLIGHT), torch.full_like(s.flight, QUERY))
         s.shadow = sh
