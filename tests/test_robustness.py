@@ -247,9 +247,9 @@ def test_bench_nrc_frame_needs_more_frames_than_it_skips():
     assert r.returncode == 2 and "must exceed --skip" in r.stderr and "Traceback" not in r.stderr
 
 
-def test_a_ctrl_c_inside_an_ahead_of_time_build_is_noted():
-    """Ctrl-C inside the AOT build still interrupts, and is noted: torch's tracing can turn the KeyboardInterrupt
-    into another exception, which the machine must not take for a failed build (and fall back to the JIT)."""
+def test_a_ctrl_c_inside_an_ahead_of_time_build_is_a_stop():
+    """Ctrl-C inside the AOT build stops it however torch's tracing treats the ``KeyboardInterrupt`` (it can turn it
+    into another exception or swallow it): raised again until the block is left, and raised on leaving."""
     import os
 
     from nrc.render.wavefront.machine import _InterruptWatch
@@ -257,11 +257,41 @@ def test_a_ctrl_c_inside_an_ahead_of_time_build_is_noted():
     before = signal.getsignal(signal.SIGINT)
     if not callable(before):
         pytest.skip("SIGINT is ignored in this process (an xdist worker)")
-    with pytest.raises(KeyboardInterrupt):
+
+    caught: list[int] = []
+
+    def swallowing(first_only: bool) -> None:
+        """A build that catches KeyboardInterrupt (the first one only, or all) for up to 30 s / 2.5 s."""
+        with _InterruptWatch():
+            for i in range(300 if first_only else 25):
+                try:
+                    if i == 0:
+                        os.kill(os.getpid(), signal.SIGINT)
+                    time.sleep(0.1)
+                except KeyboardInterrupt:
+                    caught.append(1)
+                    if first_only and len(caught) > 1:
+                        raise
+
+    with pytest.raises(KeyboardInterrupt):  # raised plainly
         with _InterruptWatch() as watch:
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(5)
     assert watch.hit and signal.getsignal(signal.SIGINT) is before
+    with pytest.raises(KeyboardInterrupt):  # turned into another error (as torch's tracing did once)
+        with _InterruptWatch():
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(5)
+            except KeyboardInterrupt:
+                raise TypeError("a tracing error") from None
+    with pytest.raises(KeyboardInterrupt):  # the first swallowed: the repeat stops the loop long before its end
+        swallowing(first_only=True)
+    assert len(caught) == 2 and signal.getsignal(signal.SIGINT) is before
+    caught.clear()
+    with pytest.raises(KeyboardInterrupt):  # every one swallowed: leaving the block is a stop
+        swallowing(first_only=False)
+    assert len(caught) >= 2  # (repeated meanwhile)
     with _InterruptWatch() as quiet:
-        pass
+        time.sleep(0.01)
     assert not quiet.hit

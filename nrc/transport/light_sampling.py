@@ -31,7 +31,7 @@ phase sampling, whose escape contributions use :meth:`LightSampler.env_pdf`).
 
 One owner: :class:`LightTable` holds the choice and the geometry (component form, the lights' numbers as an input
 of the compiled step); :class:`LightSampler` (rows) adds the lat-long maps and the environment's pdf and radiance
-on top of the same code; :func:`resample` is RIS for both.
+on top of the same code; :func:`resample` is RIS for both, its choice (:func:`ris_choice`) also the reservoirs' in ``nrc.render.reuse``.
 """
 
 from __future__ import annotations
@@ -400,35 +400,47 @@ def resample(candidates: list[Candidate], phase_of: Callable[[tuple], Tensor], u
     Each candidate is a sample of the source distribution as :meth:`LightTable.sample` returns it: its
     ``weight`` is the light's contribution over ``p_src`` (without phase and transmittance), so its RIS weight
     is ``w_i = p_hat / p_src = luminance(weight_i) x phase(wi_i)``. One candidate is kept with probability
-    ``w / sum w`` (by the uniform ``u``: the first whose running sum exceeds ``u sum w``, else the last with a
-    positive weight) and its ``weight`` replaced by ``weight_y sum w / (M luminance(weight_y) phase(wi_y))``,
-    so that the caller's ``weight x phase x transmittance`` is the RIS estimate ``f(y) sum w / (M p_hat(y))``.
+    ``w / sum w`` (:func:`ris_choice`, by the uniform ``u``) and its ``weight`` replaced by
+    ``weight_y sum w / (M luminance(weight_y) phase(wi_y))``, so that the caller's ``weight x phase x transmittance`` is the RIS estimate ``f(y) sum w / (M p_hat(y))``.
     Where every weight is zero the kept weight is zero. ``light_pdf`` stays the source pdf (the MIS weights').
 
     Returns:
         ``(chosen candidate, sum w)`` (all ``(N,)`` components).
     """
     ws = [luminance3(c[2]) * phase_of(c[0]) for c in candidates]
+    sel, total = ris_choice(ws, u)
+    chosen, chosen_w = candidates[0], ws[0]
+    for i in range(1, len(candidates)):
+        take = sel == i
+        chosen, chosen_w = _select(take, candidates[i], chosen), torch.where(take, ws[i], chosen_w)
+    # weight / (luminance x phase) = weight / chosen_w; times sum w / M
+    scale = torch.where(chosen_w > 0, total / (len(candidates) * chosen_w.clamp(min=1e-30)), torch.zeros_like(total))
+    wi, dist, weight, pdf, env = chosen
+    return (wi, dist, tuple(c * scale for c in weight), pdf, env), total
+
+
+def ris_choice(ws: list[Tensor], u: Tensor) -> tuple[Tensor, Tensor]:
+    """The one resampling choice (RIS here, the reservoirs' resampling and merging in ``nrc.render.reuse``).
+
+    ``ws``: ``m`` weights ``(N,)``, ``u`` ``(N,)`` uniforms. Returns the index ``(N,)`` (int64) kept with
+    probability ``w_i / sum w``: the first whose running sum exceeds ``u sum w``, where rounding leaves none the
+    last positive weight, 0 where every weight is 0; and ``sum w`` ``(N,)``. Streams over the list (no stacked
+    ``(N, m)`` tensor: the compiled step's form)."""
     total = ws[0]
     for w in ws[1:]:
         total = total + w
     target = u * total
     run = torch.zeros_like(total)
+    first = torch.zeros_like(total, dtype=torch.int64)
+    last = torch.zeros_like(first)
     picked = torch.zeros_like(total, dtype=torch.bool)
-    chosen, last = candidates[0], candidates[0]
-    chosen_w, last_w = ws[0], ws[0]
-    for c, w in zip(candidates, ws):
+    for i, w in enumerate(ws):
         run = run + w
-        take = ~picked & (w > 0) & (target < run)
-        chosen, chosen_w = _select(take, c, chosen), torch.where(take, w, chosen_w)
         pos = w > 0
-        last, last_w = _select(pos, c, last), torch.where(pos, w, last_w)
+        take = ~picked & pos & (target < run)
+        first, last = torch.where(take, i, first), torch.where(pos, i, last)
         picked = picked | take
-    chosen, chosen_w = _select(picked, chosen, last), torch.where(picked, chosen_w, last_w)
-    # weight / (luminance x phase) = weight / chosen_w; times sum w / M
-    scale = torch.where(chosen_w > 0, total / (len(candidates) * chosen_w.clamp(min=1e-30)), torch.zeros_like(total))
-    wi, dist, weight, pdf, env = chosen
-    return (wi, dist, tuple(c * scale for c in weight), pdf, env), total
+    return torch.where(picked, first, last), total
 
 
 def _select(m: Tensor, a: Candidate, b: Candidate) -> Candidate:

@@ -74,7 +74,7 @@ from torch import Tensor
 from nrc.render.reuse.hook import ReuseHook
 from nrc.render.wavefront.program import VertexEvent
 from nrc.render.wavefront.setup import camera_rays
-from nrc.transport.light_sampling import LightSampler, luminance3, power_heuristic
+from nrc.transport.light_sampling import LightSampler, luminance3, power_heuristic, ris_choice
 from nrc.transport.phase import hg_pdf
 
 REUSE_MODES = ("none", "spatial", "spatiotemporal")
@@ -292,23 +292,13 @@ class Reservoirs(_Rows):
         return self.x
 
 
-def _choose(ws: list[Tensor], u: Tensor) -> tuple[Tensor, Tensor]:
-    """Index ``(N,)`` of the input chosen with probability ``w_i / sum w`` by the uniforms ``u``, and ``sum w``
-    (the index of a positive weight wherever the sum is positive)."""
-    w = torch.stack(ws, 1)
-    cum = torch.cumsum(w, 1)
-    total = cum[:, -1]
-    sel = (cum <= (u * total)[:, None]).sum(1).clamp(max=len(ws) - 1)
-    return torch.where(total > 0, sel, torch.zeros_like(sel)), total
-
-
 def _resample(ws: list[Tensor], ps: list[Tensor], u: Tensor, valid: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The end of an initial RIS over ``m = len(ws)`` candidates per row: ``ws`` their resampling weights
     ``p_hat / p_src``, ``ps`` their targets ``p_hat``, ``u`` ``(N,)`` the choice. Returns the chosen index
     ``(N,)``, the contribution weight ``W = sum w / (m p_hat(chosen))`` (0 where the row is invalid or nothing
     has weight) and the confidence ``M = m`` (0 on invalid rows)."""
     m = len(ws)
-    sel, total = _choose(ws, u)
+    sel, total = ris_choice(ws, u)
     ph = _gather(ps, sel)
     ok = valid & (total > 0) & (ph > 0)
     W = torch.where(ok, total / (m * ph).clamp(min=1e-30), torch.zeros_like(total))
@@ -393,7 +383,7 @@ class ReservoirReuse:
         p0 = [self.target_at(lights, ri, rx) for ri in inputs]  # p_hat_0(y_i)
         m = self._mis_weights(inputs, Ms, p0, lights)
         ws = [m[i] * p0[i] * ri.W for i, ri in enumerate(inputs)]
-        sel, total = _choose(ws, u)
+        sel, total = ris_choice(ws, u)
         ph = _gather(p0, sel)
         ok = rx.valid & (total > 0) & (ph > 0)
         W = torch.where(ok, total / ph.clamp(min=1e-30), torch.zeros_like(total))

@@ -173,27 +173,45 @@ class _Package:
 
 
 class _InterruptWatch:
-    """Notes a SIGINT that arrives inside the block (the main thread's handler still runs): torch's tracing can
-    turn the ``KeyboardInterrupt`` it raises into another exception, which must not read as a failed build."""
+    """A SIGINT inside the block is a stop, whatever torch's code does with it.
 
+    The main thread's handler still runs (it raises ``KeyboardInterrupt``), but code inside torch's tracing can turn
+    that exception into another one or swallow it (C-level attribute probes clear any error) and go on building for
+    minutes. So after a hit the interrupt is raised again every ``REPEAT_S`` until the block is left, and leaving
+    the block after a hit, normally or by any exception, raises ``KeyboardInterrupt``.
+    """
+
+    REPEAT_S = 1.0
     hit = False
 
     def __enter__(self) -> _InterruptWatch:
         self._prev = None
+        self._left = threading.Event()
         if threading.current_thread() is threading.main_thread():
             prev = signal.getsignal(signal.SIGINT)
             if callable(prev):  # Python's handler (or the app's): wrap it; SIG_IGN / SIG_DFL stay as they are
                 def handler(signum: int, frame: Any) -> None:
-                    self.hit = True
+                    if not self.hit:
+                        self.hit = True
+                        threading.Thread(target=self._repeat, daemon=True).start()
                     prev(signum, frame)
 
                 self._prev = prev
                 signal.signal(signal.SIGINT, handler)
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def _repeat(self) -> None:
+        import _thread
+
+        while not self._left.wait(self.REPEAT_S):
+            _thread.interrupt_main(signal.SIGINT)
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: Any) -> None:
+        self._left.set()
         if self._prev is not None:
             signal.signal(signal.SIGINT, self._prev)
+        if self.hit and not isinstance(exc, KeyboardInterrupt):
+            raise KeyboardInterrupt from exc
 
 
 def _build_package(fn: Any, args: tuple[Tensor, ...], options: dict[str, Any], path: Path) -> None:
@@ -278,11 +296,9 @@ class Machine:
                     log.warning("the compiled step %s cannot be loaded (%s); compiling it again", path.name,
                                 failure_line(exc) or type(exc).__name__)
             try:
-                with _InterruptWatch() as interrupt:
+                with _InterruptWatch():  # Ctrl-C inside torch's tracing, however it surfaces: a stop
                     _build_package(fn, args, options, path)
             except Exception as exc:  # noqa: BLE001 -- an op export cannot take: the JIT compiles it
-                if interrupt.hit:  # Ctrl-C inside torch's tracing can surface as another error: still a stop
-                    raise KeyboardInterrupt from exc
                 log.info("ahead-of-time compile of the step failed (%s: %s); using torch.compile", type(exc).__name__,
                          failure_line(exc))
                 self.packages = None
@@ -333,8 +349,9 @@ class Machine:
             if self.packages is not None:
                 scene = (inputs.P, inputs.density, inputs.majorant)
                 self._load_packages((F, I, *scene), (Fv, Iv, *scene))
-            self.track(F, I, inputs)
-            self.vertex(Fv, Iv, inputs)
+            with _InterruptWatch():  # torch.compile's first calls (the JIT path) trace as well
+                self.track(F, I, inputs)
+                self.vertex(Fv, Iv, inputs)
         finally:
             done.set()
         self.startup_s = time.perf_counter() - t0
