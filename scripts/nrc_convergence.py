@@ -10,7 +10,8 @@ frame unless ``scene.integrator.spp`` is given -- plus the variant's Hydra overr
 it prints and records the frame's relMSE over the medium pixels, raw and denoised (pyoidn), its image mean over
 the reference's (medium pixels), and the wall time since the renderer started (start-up and compilation
 included). The reference must come from the disjoint seed stream (``scripts/render_reference.py``).
-docs/nrc.md ("Defaults by measurement") shows what it measured.
+docs/nrc_measurements.md ("Defaults by measurement", "Thick clouds" and "Training budget on small images") shows
+what it measured.
 """
 
 import argparse

@@ -566,7 +566,7 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
         fraction, tau = auto_unbiased_fraction(scene)
         assert fraction == want
         assert tau == pytest.approx(scene_optical_depth(scene).median, rel=0.25)  # on a smaller camera
-        assert auto_unbiased_fraction(scene, "sun")[0] == 0.25  # a moving light: the quarter (docs/nrc.md)
+        assert auto_unbiased_fraction(scene, "sun")[0] == 0.25  # a moving light: the quarter (docs/nrc_measurements.md)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",
                    "scene.volume.density_scale=4"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None

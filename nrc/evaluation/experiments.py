@@ -338,7 +338,7 @@ BUILDERS = {
 
 
 # the front-lit runs' renderer (commits ed8b100-e0a394f): before the shared transport core (nrc/render/wavefront/)
-# and the current NRC defaults (docs/nrc.md, "Defaults by measurement")
+# and the current NRC defaults (docs/nrc.md, "Current defaults and why")
 EARLIER = "earlier version of the renderer, before the shared transport core"
 # (label, run directory under docs/results/): first the comparison with the path tracer plus a denoiser on the
 # scene types (the headline), then the earlier runs against the raw path tracer on the front-lit preset

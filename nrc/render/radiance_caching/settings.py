@@ -158,7 +158,7 @@ def _unbiased_fraction(tr: ConfigReader) -> float | None:
 
 
 THICK_OPTICAL_DEPTH = 40.0  # auto: a scene whose median optical depth reaches this is thick (docs/scenes.md)
-UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/nrc.md, "Unbiased training paths")
+UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/nrc_measurements.md)
 OPTICAL_DEPTH_PIXELS = 64 * 36  # auto: the optical depth is taken over a camera of about this many pixels
 
 
@@ -169,7 +169,7 @@ def auto_unbiased_fraction(scene: Any, animate: str = "none") -> tuple[float, fl
     :data:`THICK_OPTICAL_DEPTH` on with a static camera and light (``animate`` ``none``), else ``moderate``. In a
     thick cloud self-training passes most of a cached value on to the targets; more fully traced paths bring the
     image mean up sooner there, and cost accuracy on moderate clouds and under a moving light, where the cache
-    overshoots (measured in docs/nrc.md)."""
+    overshoots (measured in docs/nrc_measurements.md, "Unbiased training paths" and "A whole animation")."""
     from nrc.volume.optical_depth import scene_optical_depth
 
     cam = scene.camera

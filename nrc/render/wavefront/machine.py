@@ -186,7 +186,7 @@ class _InterruptWatch:
 
     def __enter__(self) -> _InterruptWatch:
         self._prev = None
-        self._left = threading.Event()
+        self._left, self._lock = threading.Event(), threading.Lock()
         if threading.current_thread() is threading.main_thread():
             prev = signal.getsignal(signal.SIGINT)
             if callable(prev):  # Python's handler (or the app's): wrap it; SIG_IGN / SIG_DFL stay as they are
@@ -204,10 +204,13 @@ class _InterruptWatch:
         import _thread
 
         while not self._left.wait(self.REPEAT_S):
-            _thread.interrupt_main(signal.SIGINT)
+            with self._lock:  # never once the block is left
+                if not self._left.is_set():
+                    _thread.interrupt_main(signal.SIGINT)
 
     def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: Any) -> None:
-        self._left.set()
+        with self._lock:
+            self._left.set()
         if self._prev is not None:
             signal.signal(signal.SIGINT, self._prev)
         if self.hit and not isinstance(exc, KeyboardInterrupt):
