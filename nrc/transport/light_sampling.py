@@ -59,8 +59,8 @@ class LightSamplingSettings:
     selection: str = "uniform"
     """``uniform`` | ``power`` | ``ris`` (module docstring)."""
     candidates: int = 4
-    """``ris``: candidates ``M`` per next-event estimate (``>= 1``; ignored by the other selections; 4 was the
-    most efficient on the many-lights preset, docs/path_tracer.md)."""
+    """``ris``: candidates ``M`` per next-event estimate (``>= 1``; ignored by the other selections; measured in
+    docs/path_tracer_measurements.md, "Light selection": 8 more efficient on many lights, 4 the default)."""
     point_lights: str = "none"
     """``none`` | ``equiangular``: point lights' direct light by equi-angular distance sampling along every
     flight segment instead of next-event estimation at the vertices (:mod:`nrc.transport.equiangular`)."""

@@ -31,9 +31,9 @@ phase lobe that phase sampling covers), times the march's transmittance with ``t
 ``w_i = m_i(y_i) p_hat_0(y_i) W_i``; the kept ``y`` gets ``W = sum w / p_hat_0(y)`` and ``M = sum M_j``.
 ``reuse.mis`` chooses the ``m_i``:
 
-- ``balance`` (the default by measurement, ``docs/path_tracer.md``): the generalized balance heuristic
-  ``M_i p_hat_i(y) / sum_j M_j p_hat_j(y)`` over every input's own target (each evaluated at that input's
-  vertex: ``(K+1)^2`` target evaluations).
+- ``balance`` (the default by measurement, ``docs/path_tracer.md``, "Reservoir reuse"): the generalized balance
+  heuristic ``M_i p_hat_i(y) / sum_j M_j p_hat_j(y)`` over every input's own target (each evaluated at that
+  input's vertex: ``(K+1)^2`` target evaluations).
 - ``pairwise`` (Bitterli's pairwise MIS with confidences): the receiver ``c`` against each neighbour ``i``
   alone, ``N = sum_i M_i``: ``m_i(y) = M_i p_hat_i(y) / (N p_hat_i(y) + M_c p_hat_c(y))`` and
   ``m_c(y) = sum_i (M_i / N) M_c p_hat_c(y) / (N p_hat_i(y) + M_c p_hat_c(y))`` (``3K + 1`` evaluations). With
