@@ -250,13 +250,23 @@ def test_bench_nrc_frame_needs_more_frames_than_it_skips():
 def test_a_ctrl_c_inside_an_ahead_of_time_build_is_a_stop():
     """Ctrl-C inside the AOT build stops it however torch's tracing treats the ``KeyboardInterrupt`` (it can turn it
     into another exception or swallow it): raised again until the block is left, and raised on leaving."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers are set in the main thread only")
+    ignored = signal.getsignal(signal.SIGINT)
+    if not callable(ignored):  # CI's run and xdist workers may ignore SIGINT: Python's own handler for the test
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _watch_cases(signal.getsignal(signal.SIGINT))
+    finally:
+        signal.signal(signal.SIGINT, ignored)
+
+
+def _watch_cases(before: object) -> None:
     import os
 
     from nrc.render.wavefront.machine import _InterruptWatch
-
-    before = signal.getsignal(signal.SIGINT)
-    if not callable(before):
-        pytest.skip("SIGINT is ignored in this process (an xdist worker)")
 
     caught: list[int] = []
 
