@@ -305,6 +305,40 @@ def test_every_vertex_program_is_in_the_aot_key():
         assert any(rel == d or rel.startswith(d + "/") for d in STEP_SOURCES), rel
 
 
+def test_a_segment_that_skips_the_environment_is_a_named_state_field():
+    """``Decision.skip_env`` lives in the state field ``skip_env``, present where the program or a hook declares
+    ``skips_env`` (no sign carried in ``pdf``); a program that sets it undeclared gets one clear error."""
+    from nrc.render.wavefront import build_core
+    from nrc.render.wavefront.program import Decision, VertexProgram
+
+    pt = make(["renderer.backend=eager"])[0]
+    assert not pt.core.step.layout.skip_env  # pt without reuse: the field does not exist
+    light_only = make(["renderer.backend=eager", "renderer.reuse.mode=spatial", "renderer.reuse.domain=distance"])[0]
+    assert light_only.core.step.layout.skip_env
+
+    class Undeclared(VertexProgram):
+        def at_vertex(self, s, n_s, beta_s, albedo, prm, u):
+            go = torch.ones_like(n_s, dtype=torch.bool)
+            return Decision(go=go, nee=go, mis=go, nee_beta=beta_s, beta=beta_s, skip_env=n_s == 1)
+
+    class Declared(Undeclared):
+        own_skips_env = True
+
+    for program in (Undeclared(), Declared()):
+        core = build_core(pt.scene, pt.transmittance, pt.settings, program)
+        ly = core.step.layout
+        F, I = ly.zeros(4, "cpu")
+        F[ly.f("d")] = torch.tensor([[0.0], [0.0], [1.0]]).expand(3, 4)
+        I[ly.i("n")] = torch.tensor([0, 0, 1, 1])  # vertices 1, 1, 2, 2
+        args = (core.inputs.P, core.inputs.density, core.inputs.majorant)
+        if isinstance(program, Declared):
+            F, I = core.step.vertex(F, I, *args)
+            assert I[ly.i("skip_env")].tolist() == [1, 1, 0, 0] and bool((F[ly.f("pdf")] > 0).all())
+        else:
+            with pytest.raises(TypeError, match="Undeclared sets Decision.skip_env but does not declare skips_env"):
+                core.step.vertex(F, I, *args)
+
+
 def test_one_machine_serves_every_scene_of_a_structure():
     """Tracers of other scenes (another grid, g, albedo, density scale, light, camera, spp, seed) share one machine:
     their numbers are step inputs. Another light structure or estimator gets its own."""

@@ -80,6 +80,7 @@ class NRCVertex(VertexProgram):
             ("debias_q",) if self.debias else ())
         # a continued path under cache_target=indirect keeps the terminal vertex's estimate (light sampling alone)
         self.indirect_debias = self.debias and self.cache_target == "indirect"
+        self.own_skips_env = self.indirect_debias  # ... and its next segment's escape does not count the sky
 
     @property
     def structure(self) -> tuple[Any, ...]:
@@ -105,7 +106,7 @@ class NRCVertex(VertexProgram):
         dist2 = sum((xa - pa) ** 2 for xa, pa in zip(x, s.x_prev))
         first = n_s == 1
         a0 = torch.where(first, dist2 / (4.0 * math.pi), s.a0)
-        spread = torch.where(first, zero, s.spread + torch.sqrt(dist2 / s.pdf.abs().clamp(min=1e-30)))
+        spread = torch.where(first, zero, s.spread + torch.sqrt(dist2 / s.pdf.clamp(min=1e-30)))
         eligible = n_s.to(torch.float32) >= prm["min_vertices"]
         if self.rule == "count":
             fire = eligible & (u[0] >= prm["p_continue"])

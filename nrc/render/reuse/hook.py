@@ -23,6 +23,7 @@ class ReuseHook:
         if vertex < 1:
             raise ValueError(f"the reuse vertex must be >= 1, got {vertex}")
         self.vertex, self.light_only = int(vertex), bool(light_only)
+        self.skips_env = self.light_only  # sets Decision.skip_env (the state keeps the field)
 
     @property
     def structure(self) -> tuple[Any, ...]:

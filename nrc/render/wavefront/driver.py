@@ -170,11 +170,11 @@ class Wavefront:
             if len(e):
                 d = Fd[ly.f("d")][:, e].T.contiguous()
                 pdf = Fd[ly.f("pdf")][e]
-                # pdf 0: a camera ray (no MIS); pdf < 0: a segment whose escape does not count the environment
-                # (the vertex program's Decision.skip_env)
-                w = torch.where(pdf > 0, power_heuristic(pdf, self.lights.env_pdf(d)),
-                                (pdf == 0).to(pdf.dtype))
+                # pdf 0: a camera ray (no MIS)
+                w = torch.where(pdf > 0, power_heuristic(pdf, self.lights.env_pdf(d)), torch.ones_like(pdf))
                 Ie = Id[:, e]
+                if ly.skip_env:  # segments whose escape does not count the environment (Decision.skip_env)
+                    w = torch.where(Ie[ly.i("skip_env")] != 0, torch.zeros_like(w), w)
                 # the MIS-weighted environment is the direct light of the vertex the segment left
                 acc.index_add_(0, col.direct_rows(ly, Ie), Fd[ly.f("beta")][:, e].T * self.lights.env_radiance(d) * w[:, None])
         c = self.counts

@@ -50,7 +50,8 @@ class Decision:
     """Throughput of the continuation (albedo included; before the throughput roulette)."""
     skip_env: Tensor | None = None
     """The next segment's escape does not count the environment (its direct light was estimated otherwise);
-    ``None``: every escape counts it."""
+    ``None``: every escape counts it. Kept in the state field ``skip_env``, which exists where the program
+    declares :attr:`VertexProgram.skips_env`."""
 
 
 class VertexProgram:
@@ -66,6 +67,7 @@ class VertexProgram:
     int_fields: tuple[str, ...] = ()  # extra integer state fields
     param_names: tuple[str, ...] = ()  # the program's numbers in ``P``, in order
     lanes = 0  # random lanes of the vertex draw the program uses (after the core's)
+    own_skips_env = False  # at_vertex may set Decision.skip_env
 
     def __init__(self, hooks: tuple = ()) -> None:
         self.hooks = tuple(hooks)
@@ -74,6 +76,11 @@ class VertexProgram:
     def structure(self) -> tuple[Any, ...]:
         """Everything the program's step code depends on, as plain values (part of the compile cache's key)."""
         return ("pt", *(h.structure for h in self.hooks))
+
+    @property
+    def skips_env(self) -> bool:
+        """The program or one of its hooks may set :attr:`Decision.skip_env` (the state then has the field)."""
+        return bool(self.own_skips_env) or any(getattr(h, "skips_env", False) for h in self.hooks)
 
     def param_values(self, **frame: Any) -> list[float]:
         """The values of :attr:`param_names` (``frame``: numbers that change from frame to frame)."""

@@ -23,12 +23,16 @@ Fields (units: world units, radiance in linear RGB):
 Integer fields: ``dest`` (accumulator row of row 0: the pixel, or a training path's discard row), ``key``
 and ``cnt`` (counter-based RNG), ``n`` (real scattering events), ``flight`` (one of ``DONE``, ``FLIGHT``,
 ``VERTEX``, ``QUERY``, ``ESCAPED``), ``shadow`` (0 none, 1 pending in the slot, 2 queued for an external
-estimator), ``occupied`` (holds an unharvested path), ``n_shadow_steps``.
+estimator), ``occupied`` (holds an unharvested path), ``n_shadow_steps``; and ``skip_env`` (1: the current
+segment's escape does not count the environment, :attr:`Decision.skip_env
+<nrc.render.wavefront.program.Decision.skip_env>`) where the vertex program can set it
+(:attr:`VertexProgram.skips_env <nrc.render.wavefront.program.VertexProgram.skips_env>`; ``pt`` without reuse
+has no such field).
 
 A renderer's vertex program (:mod:`nrc.render.wavefront.program`) adds its own fields after these (``nrc``: the
 termination rule's path spread, the training records' bookkeeping; :mod:`nrc.render.radiance_caching.vertex`).
 
-Memory: ``4 NF + 8 NI`` bytes a slot (136 for ``pt``, 268 for ``nrc`` with ``V = 4``).
+Memory: ``4 NF + 8 NI`` bytes a slot (136 for ``pt``, 268 for ``nrc`` with ``V = 4``; 8 more with ``skip_env``).
 """
 
 from __future__ import annotations
@@ -77,6 +81,7 @@ class PathState:
     shadow: Any = None
     occupied: Any = None
     n_shadow_steps: Any = None
+    skip_env: Any = None
     # a vertex program's own fields are set as further attributes by Layout.unpack
 
 
@@ -88,13 +93,14 @@ class Layout:
     rows: int = 1
     extra_float: tuple[tuple[str, int], ...] = ()
     extra_int: tuple[str, ...] = ()
+    skip_env: bool = False
     _f: dict = field(default_factory=dict, compare=False, repr=False)
     _i: dict = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def of(cls, program: Any) -> Layout:
         """The layout of a vertex program (:mod:`nrc.render.wavefront.program`)."""
-        return cls(program.rows, tuple(program.float_fields), tuple(program.int_fields))
+        return cls(program.rows, tuple(program.float_fields), tuple(program.int_fields), program.skips_env)
 
     def __post_init__(self) -> None:
         pos = 0
@@ -102,7 +108,7 @@ class Layout:
             self._f[name] = (pos, width)
             pos += width
         object.__setattr__(self, "nf", pos)
-        for k, name in enumerate(_INT + list(self.extra_int)):
+        for k, name in enumerate(_INT + ["skip_env"] * self.skip_env + list(self.extra_int)):
             self._i[name] = k
         object.__setattr__(self, "ni", len(self._i))
 

@@ -283,9 +283,12 @@ class Transport:
         s.t = torch.where(go, zero, s.t)
         s.tmax = torch.where(go, t_far, s.tmax)
         s.beta = where3(go, beta_s, s.beta)
-        # pdf < 0 marks a segment whose escape does not count the environment (Decision.skip_env)
-        no_env = dec.skip_env
-        s.pdf = torch.where(go, torch.where(no_env, -pdf_s, pdf_s) if no_env is not None else pdf_s, s.pdf)
+        s.pdf = torch.where(go, pdf_s, s.pdf)
+        if dec.skip_env is not None:
+            if s.skip_env is None:
+                raise TypeError(f"{type(self.program).__name__} sets Decision.skip_env but does not declare skips_env "
+                                "(the state has no skip_env field)")
+            s.skip_env = torch.where(go, dec.skip_env.long(), s.skip_env)
         s.wi = where3(nee, wi, s.wi)
         s.ts = torch.where(nee, zero, s.ts)
         s.tse = torch.where(nee, tse, s.tse)
