@@ -207,6 +207,7 @@ def _hydra_main(cfg: DictConfig) -> None:
         print(f"nrc: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except (KeyboardInterrupt, _Terminated) as exc:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # stopping: a second Ctrl-C must not end it with a traceback
         name, code = ("SIGINT", 130) if isinstance(exc, KeyboardInterrupt) else ("SIGTERM", 143)
         print(f"nrc: interrupted by {name} before the outputs were written (renderer={cfg.renderer.get('name')} "
               "renders in one pass; scripts/render_reference.py renders long images in resumable chunks)",

@@ -305,3 +305,23 @@ def _watch_cases(before: object) -> None:
     with _InterruptWatch() as quiet:
         time.sleep(0.01)
     assert not quiet.hit
+
+    import threading
+
+    class Trap(threading.Event):
+        def set(self) -> None:  # a Ctrl-C handled while the block is being left (inside __exit__)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.01)
+            super().set()
+
+    class Leaving(_InterruptWatch):
+        def __enter__(self):
+            super().__enter__()
+            self._left = Trap()
+            return self
+
+    with pytest.raises(KeyboardInterrupt):  # __exit__ raises it once, and nothing repeats after the block
+        with Leaving() as leaving:
+            pass
+    assert leaving.hit and signal.getsignal(signal.SIGINT) is before
+    time.sleep(3 * _InterruptWatch.REPEAT_S)  # a repeat left running would interrupt this sleep

@@ -178,7 +178,9 @@ class _InterruptWatch:
     The main thread's handler still runs (it raises ``KeyboardInterrupt``), but code inside torch's tracing can turn
     that exception into another one or swallow it (C-level attribute probes clear any error) and go on building for
     minutes. So after a hit the interrupt is raised again every ``REPEAT_S`` until the block is left, and leaving
-    the block after a hit, normally or by any exception, raises ``KeyboardInterrupt``.
+    the block after a hit, normally or by any exception, raises ``KeyboardInterrupt``. An interrupt handled while
+    the block is being left (inside :meth:`__exit__`, at any depth) only notes the hit: ``__exit__`` raises it, and
+    a repeat can never land after the block.
     """
 
     REPEAT_S = 1.0
@@ -191,14 +193,24 @@ class _InterruptWatch:
             prev = signal.getsignal(signal.SIGINT)
             if callable(prev):  # Python's handler (or the app's): wrap it; SIG_IGN / SIG_DFL stay as they are
                 def handler(signum: int, frame: Any) -> None:
-                    if not self.hit:
-                        self.hit = True
+                    leaving = self._leaving(frame)
+                    if not self.hit and not leaving:
                         threading.Thread(target=self._repeat, daemon=True).start()
-                    prev(signum, frame)
+                    self.hit = True
+                    if not leaving:
+                        prev(signum, frame)
 
                 self._prev = prev
                 signal.signal(signal.SIGINT, handler)
         return self
+
+    def _leaving(self, frame: Any) -> bool:
+        """The main thread is inside this watch's ``__exit__`` (``frame``: where the handler interrupted it)."""
+        while frame is not None:
+            if frame.f_code is _InterruptWatch.__exit__.__code__ and frame.f_locals.get("self") is self:
+                return True
+            frame = frame.f_back
+        return False
 
     def _repeat(self) -> None:
         import _thread
