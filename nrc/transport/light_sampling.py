@@ -31,7 +31,8 @@ phase sampling, whose escape contributions use :meth:`LightSampler.env_pdf`).
 
 One owner: :class:`LightTable` holds the choice and the geometry (component form, the lights' numbers as an input
 of the compiled step); :class:`LightSampler` (rows) adds the lat-long maps and the environment's pdf and radiance
-on top of the same code; :func:`resample` is RIS for both, its choice (:func:`ris_choice`) also the reservoirs' in ``nrc.render.reuse``.
+on top of the same code; :func:`resample` is RIS for both, and its choice (:func:`ris_choice`) is also the
+reservoirs' in ``nrc.render.reuse``.
 """
 
 from __future__ import annotations
@@ -401,7 +402,8 @@ def resample(candidates: list[Candidate], phase_of: Callable[[tuple], Tensor], u
     ``weight`` is the light's contribution over ``p_src`` (without phase and transmittance), so its RIS weight
     is ``w_i = p_hat / p_src = luminance(weight_i) x phase(wi_i)``. One candidate is kept with probability
     ``w / sum w`` (:func:`ris_choice`, by the uniform ``u``) and its ``weight`` replaced by
-    ``weight_y sum w / (M luminance(weight_y) phase(wi_y))``, so that the caller's ``weight x phase x transmittance`` is the RIS estimate ``f(y) sum w / (M p_hat(y))``.
+    ``weight_y sum w / (M luminance(weight_y) phase(wi_y))``, so that the caller's
+    ``weight x phase x transmittance`` is the RIS estimate ``f(y) sum w / (M p_hat(y))``.
     Where every weight is zero the kept weight is zero. ``light_pdf`` stays the source pdf (the MIS weights').
 
     Returns:

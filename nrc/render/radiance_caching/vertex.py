@@ -80,7 +80,10 @@ class NRCVertex(VertexProgram):
             ("debias_q",) if self.debias else ())
         # a continued path under cache_target=indirect keeps the terminal vertex's estimate (light sampling alone)
         self.indirect_debias = self.debias and self.cache_target == "indirect"
-        self.own_skips_env = self.indirect_debias  # ... and its next segment's escape does not count the sky
+
+    @property
+    def own_skips_env(self) -> bool:  # a continued path's next segment does not count the sky (indirect debias)
+        return self.indirect_debias
 
     @property
     def structure(self) -> tuple[Any, ...]:

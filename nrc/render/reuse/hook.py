@@ -23,11 +23,15 @@ class ReuseHook:
         if vertex < 1:
             raise ValueError(f"the reuse vertex must be >= 1, got {vertex}")
         self.vertex, self.light_only = int(vertex), bool(light_only)
-        self.skips_env = self.light_only  # sets Decision.skip_env (the state keeps the field)
 
     @property
     def structure(self) -> tuple[Any, ...]:
         return ("reuse", self.vertex, "light_only") if self.light_only else ("reuse", self.vertex)
+
+    @property
+    def skips_env(self) -> bool:
+        """It sets :attr:`Decision.skip_env` (``light_only``): the state keeps the field."""
+        return self.light_only
 
     def adjust(self, d: Decision, s: Any, n_s: Tensor, render: Tensor | None) -> Decision:
         at = n_s == self.vertex

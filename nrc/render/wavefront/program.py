@@ -59,7 +59,7 @@ class VertexProgram:
 
     Args:
         hooks: vertex-level features applied after :meth:`at_vertex`, in order (each has ``structure``,
-            ``adjust(decision, s, n_s, render)``).
+            ``adjust(decision, s, n_s, render)`` and, where it may set :attr:`Decision.skip_env`, ``skips_env``).
     """
 
     rows = 1  # accumulator rows per slot (the slot's ``L`` has ``3 rows`` floats)
