@@ -224,3 +224,42 @@ def test_retain_freed_memory_is_idempotent():
     x = torch.empty(1 << 24)  # a 64 MiB block is allocated and freed normally afterwards
     x.fill_(1.0)
     assert x.sum().item() == float(1 << 24)
+
+
+# ---------------------------------------------------------------- compiled training step
+@pytest.mark.slow
+def test_compiled_training_step_equals_eager():
+    """``compile_training``: the same losses and the same trained cache as eager, batch sizes changing (one
+    dynamic graph), within float tolerance (the compiled kernels sum in another order)."""
+    grid = _grid()
+    eager, compiled = _cache(grid), _cache(grid, cache={**CACHE, "compile_training": True})
+    assert (eager.training_backend, compiled.training_backend) == ("eager", "compiled")
+    for step, n in enumerate((300, 257, 300, 123)):
+        x, d = _batch(grid, n, 10 + step)
+        t = torch.rand(n, 3, generator=torch.Generator().manual_seed(step))
+        assert compiled.train_step(x, d, t) == pytest.approx(eager.train_step(x, d, t), rel=1e-4)
+    assert compiled.training_backend == "compiled" and compiled.training_backend_reason is None
+    x, d = _batch(grid, 200, 99)
+    torch.testing.assert_close(compiled.query(x, d), eager.query(x, d), rtol=1e-3, atol=1e-4)
+    # the NaN guard holds on the compiled path too
+    before = [p.detach().clone() for p in compiled.network.parameters()]
+    assert not math.isfinite(compiled.train_step(x, d, torch.full((200, 3), float("nan"))))
+    assert compiled.n_skipped_steps == 1
+    assert all(torch.equal(a, b) for a, b in zip(before, compiled.network.parameters()))
+
+
+def test_compiled_training_step_falls_back_to_eager_with_its_reason(monkeypatch):
+    def broken(fn, **kw):
+        def call(*a):
+            raise RuntimeError("no C++ compiler\nmore detail")
+        return call
+    monkeypatch.setattr(torch, "compile", broken)
+    grid = _grid()
+    cache, eager = _cache(grid, cache={**CACHE, "compile_training": True}), _cache(grid)
+    x, d = _batch(grid, 64, 1)
+    t = torch.rand(64, 3, generator=torch.Generator().manual_seed(1))
+    with pytest.warns(UserWarning, match="training eagerly"):
+        loss = cache.train_step(x, d, t)
+    assert loss == eager.train_step(x, d, t)
+    assert cache.training_backend == "eager"
+    assert cache.training_backend_reason == "torch.compile of the training step failed: RuntimeError: no C++ compiler"

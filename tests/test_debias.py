@@ -120,7 +120,7 @@ def test_diagnostics_measure_the_cache_error_and_suffixes_train_on_the_truth():
     r = NRCRenderer(scene, cfg, cache=StubCache(scaled(0.5)(scene)))
     pushed = []
     push = r.ring.push
-    r.ring.push = lambda records, valid: (pushed.append((records, valid)), push(records, valid))[1]
+    r.ring.push = lambda records, valid, *frame: (pushed.append((records, valid)), push(records, valid, *frame))[1]
     image, stats, _ = r.render_frame(0)
     assert stats["debias_continued"] > 1500
     assert 0.4 < stats["debias_continued"] / stats["debias_terminations"] < 0.6
@@ -179,13 +179,13 @@ def test_debias_composes_with_reservoir_reuse(target):
 
 @pytest.mark.slow
 def test_compiled_debias_matches_eager(fresh_machines):
-    """A real compile of the debias structure (the extra random lane and P entry): the same image as the eager
-    step, and another q reuses the compiled graph (q travels in P)."""
+    """A real compile of the debias structure (the extra random lane and P entry): the same image as its step run
+    eagerly (shadow rays inside the step), and another q reuses the compiled graph (q travels in P)."""
     from nrc.render.wavefront.machine import compiled_graphs
 
     base = [*AT_ORACLE, *debias(0.5)]
     compiled = render_images(base, 1, "nrc", scaled(0.5), backend="compiled")
-    eager = render_images(base, 1, "nrc", scaled(0.5), backend="eager")
+    eager = render_images(base, 1, "nrc", scaled(0.5), backend="step")
     np.testing.assert_allclose(compiled[0], eager[0], rtol=1e-4, atol=1e-6)
     graphs = compiled_graphs()  # Dynamo graphs and AOT packages built
     render_images([*AT_ORACLE, *debias(0.2)], 1, "nrc", scaled(0.5), backend="compiled")

@@ -82,8 +82,7 @@ def _references() -> list[tuple[str, str, list[str]]]:
 
 def test_the_pattern_finds_the_known_references():
     refs = _references()
-    assert ("conf/renderer/nrc.yaml", "docs/nrc_measurements.md",
-            ["Defaults by measurement", "Training budget on small images"]) in refs
+    assert ("conf/renderer/nrc.yaml", "docs/nrc.md", ["Frames bounded by work", "Current defaults and why"]) in refs
     assert ("conf/renderer/nrc.yaml", "docs/nrc_measurements.md", ["Thick clouds"]) in refs  # wrapped comment
     assert ("conf/renderer/nrc.yaml", "docs/nrc.md", ["Unbiased NRC"]) in refs  # no comma
     assert sum(bool(names) for _, _, names in refs) >= 30

@@ -187,6 +187,14 @@ def test_crossover_summary_states_where_nrc_pays_off(tmp_path):
     assert "With a warm cache (150 warm-up frames): 0.7x at optical depth 98 (albedo 0.99, image mean 0.97)" in \
         ex.crossover_summary(tmp_path)
     assert any("A warm cache" in line for line in ex.crossover_section(tmp_path))
+    assert ex.crossover_figure(tmp_path) is None  # no plot yet
+    (tmp_path / "results" / ex.CROSSOVER / "map.png").write_bytes(b"png")
+    image, caption = ex.crossover_figure(tmp_path)
+    assert image == f"[![Where NRC pays off: the crossover map](docs/results/{ex.CROSSOVER}/map.png)](docs/results.md)"
+    assert "NRC wins nowhere (best 1.5x at optical depth 98)" in caption
+    assert "warm cache (150 frames): 0.7x at optical depth 98" in caption
+    lines = ex.block_markdown([image, caption])
+    assert lines[0] == image and lines[1] == "" and len(lines) == 4  # the plot and a caption of two lines
     crossover_map(tmp_path, [(98.0, 0.99, 1.2)], "crossover_480x270")
     assert "At 480 x 270: 1.2x at optical depth 98 (albedo 0.99" in ex.crossover_summary(tmp_path)
     assert any(line.startswith("**At 480 x 270**") for line in ex.crossover_section(tmp_path))

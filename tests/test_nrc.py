@@ -219,7 +219,8 @@ def hand_config(tmp_path, *extra: str, g: float | None = G) -> list[str]:
             "scene.camera.width=1", "scene.camera.height=1", "scene.camera.position=[0,0,150]",
             "scene.camera.look_at=[0,0,0]", "scene.integrator.spp=1", "renderer.free_flight=global",
             "renderer.training.width=1", "renderer.training.height=1", "renderer.training.records_per_path=3",
-            "transmittance=biased_raymarch", "batch_filter.n_batches=1", "renderer.log.tensorboard=false", *extra]
+            "transmittance=biased_raymarch", "batch_filter.n_batches=1", "renderer.log.tensorboard=false",
+            "renderer.training.carry_frames=0", *extra]
 
 
 def hand_vertices(scene, n: int):
@@ -301,6 +302,69 @@ def test_capped_unbiased_training_path_ends_in_the_cache_at_its_cap(tmp_path, ta
         torch.testing.assert_close(a, b)
 
 
+def test_a_training_path_that_spans_frames_leaves_the_records_it_leaves_within_its_frame(tmp_path):
+    """``carry_frames``: a frame waits for its render paths only. The hand path's training path, still going when
+    frame 0's render path is done, goes on in frame 1's wavefront; its records (frozen cache) are those it leaves
+    when the frame waits for it (``carry_frames=0``); frame 1 trains them in place of its own path, still in
+    flight, and they enter the ring buffer marked with frame 0."""
+    waited = compose(hand_config(tmp_path, "renderer.training.extra_vertices=2"))
+    cache = StubCache(lambda x, d: C.expand_as(x).clone())
+    r = NRCRenderer(load_scene(waited.scene), waited, cache=cache)
+    r.frame_rng = lambda frame: ConstantRandom(U)
+    image0, stats0, _ = r.render_frame(0)
+    assert stats0["training_paths_in_flight"] == 0
+    (want,) = cache.batches
+
+    cfg = compose([*hand_config(tmp_path, "renderer.training.extra_vertices=2"), "renderer.training.carry_frames=4"])
+    cache = StubCache(lambda x, d: C.expand_as(x).clone())
+    r = NRCRenderer(load_scene(cfg.scene), cfg, cache=cache)
+    r.frame_rng = lambda frame: ConstantRandom(U)
+    image, stats, _ = r.render_frame(0)
+    assert stats["training_paths_in_flight"] == 1 and stats["train_records_valid"] == 0
+    torch.testing.assert_close(image, image0)  # the render path's pixel does not wait for the training path
+    _, stats, _ = r.render_frame(1)
+    assert stats["training_paths_late"] == 1 and stats["training_late_frames"] == 1.0
+    # frame 1's own path is in flight: its batch trains the late records in its place
+    for a, b in zip(cache.batches[-1], want):
+        torch.testing.assert_close(a, b)
+    got = r.ring.stored()
+    torch.testing.assert_close(got.positions, want[0])
+    torch.testing.assert_close(got.directions, want[1])
+    torch.testing.assert_close(got.targets, want[2])
+    assert r.ring.started().tolist() == [0, 0]
+
+
+def test_carried_paths_are_dropped_after_carry_frames(tmp_path):
+    """A training path still going ``carry_frames`` frames after its own is dropped when its pool block is reused:
+    its records never reach the ring buffer (unbiased training paths of the hand scene run to ``max_scatter`` 40)."""
+    cfg = compose([*hand_config(tmp_path, "renderer.training.unbiased_fraction=1.0", "scene.integrator.max_scatter=40"),
+                   "renderer.training.carry_frames=1"])
+    r = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
+    r.frame_rng = lambda frame: ConstantRandom(U)
+    stats = [r.render_frame(f)[1] for f in range(4)]
+    assert [s["training_paths_in_flight"] for s in stats] == [1, 2, 2, 2]
+    assert [s["training_paths_dropped"] for s in stats] == [0, 0, 1, 1]
+    assert all(s["training_paths_late"] == 0 for s in stats) and len(r.ring) == 0
+
+
+def test_with_a_frozen_cache_the_image_does_not_wait_for_training_paths():
+    """The render paths' image is the same whether the frame waits for its training paths or carries them on
+    (frozen cache; ``cache_target=full``: render paths end at their first vertex without a shadow ray, so they draw
+    only their own counter-based numbers; the harvest order of a pixel's samples may differ)."""
+    images = {}
+    for k in (0, 4):
+        cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, *FULL, "scene=sun_sky", "scene.integrator.spp=2",
+                       "renderer.training.unbiased_fraction=0.5", f"renderer.training.carry_frames={k}",
+                       "renderer.backend=eager"])
+        r = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.full_like(x, 0.5)))
+        out = [r.render_frame(f) for f in range(2)]
+        images[k] = [o[0] for o in out]
+        if k:
+            assert out[0][1]["training_paths_in_flight"] > 0
+    for a, b in zip(images[0], images[4]):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+
+
 class TwoWeightCache(StubCache):
     """Answers EMA queries with ``c_ema`` and raw-weight queries with ``c_raw``."""
 
@@ -371,10 +435,13 @@ TRAIN = ["scene.volume.procedural.resolution=32", "scene.camera.width=32", "scen
 @pytest.mark.slow
 def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
     """20 frames of online training lower the loss; resuming from the frame-10 checkpoint replays frames
-    10..19 exactly (every frame has its own seed; weights, Adam, EMA and ring buffer are restored)."""
+    10..19 exactly (every frame has its own seed; weights, Adam, EMA, ring buffer and the training paths in flight
+    with their partial sums are restored)."""
     import shutil
 
-    cfg = compose(["renderer=nrc", *TRAIN, "frames=20", "renderer.checkpoint_every=10"])
+    # paths in flight at the checkpoint, carried into the next frames
+    long_paths = ["renderer.training.unbiased_fraction=1.0", "renderer.training.carry_frames=4"]
+    cfg = compose(["renderer=nrc", *TRAIN, *long_paths, "frames=20", "renderer.checkpoint_every=10"])
     scene = load_scene(cfg.scene)
     full = NRCRenderer(scene, cfg)
     full.attach_output(tmp_path)
@@ -384,6 +451,7 @@ def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
             shutil.copy(tmp_path / "checkpoint.pt", tmp_path / "at10.pt")
 
     result = full.render(on_frame=keep_frame_10_checkpoint)
+    assert result.metrics["history"]["training_paths_in_flight"][9] > 0  # the checkpoint carries paths in flight
     loss = np.array(result.metrics["loss_per_frame"])
     assert len(loss) == 20 and np.isfinite(loss).all()
     # Frame 0 trains an untrained cache; later losses sit at the floor set by the noisy one-path targets.
@@ -391,7 +459,7 @@ def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
     assert np.isfinite(result.image).all() and result.image.mean() > 0
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
 
-    resumed = NRCRenderer(scene, compose(["renderer=nrc", *TRAIN, "frames=20", "renderer.log.tensorboard=false",
+    resumed = NRCRenderer(scene, compose(["renderer=nrc", *TRAIN, *long_paths, "frames=20", "renderer.log.tensorboard=false",
                                           f"renderer.resume={tmp_path / 'at10.pt'}"]))
     rest = resumed.render()
     assert rest.metrics["first_frame"] == 10
@@ -556,8 +624,9 @@ def test_flicker_in_metrics_and_lower_when_frames_accumulate():
 
 def test_auto_unbiased_fraction_follows_the_optical_depth():
     """training.unbiased_fraction=auto: half the training paths run to the end in a thick cloud (median optical
-    depth over the camera rays >= 40) under a static camera and light, a quarter in a moderate one or animated; a fixed number stays as given; other words
-    are config errors naming the key."""
+    depth over the camera rays >= 40) under a static camera and light, a quarter in a moderate one or animated;
+    carry_frames=auto: 4 in the thick cloud, 0 else; a fixed number stays as given; other words are config errors
+    naming the key."""
     from nrc.render.radiance_caching.settings import NRCSettings, auto_unbiased_fraction
     from nrc.volume.optical_depth import scene_optical_depth
 
@@ -572,6 +641,12 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None
     r = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
     assert r.settings.training.unbiased_fraction == 0.5 and r.optical_depth >= 40
+    assert r.settings.training.carry_frames == 4 and r.tracer.carry_frames == 4  # carry_frames=auto: thick
+    thin = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=0.5"])
+    r = NRCRenderer(load_scene(thin.scene), thin, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 0.25
+    with pytest.raises(ConfigError, match="renderer.training.carry_frames"):
+        NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.carry_frames=-1"]).renderer)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=0.1"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction == 0.1
     with pytest.raises(ConfigError, match="renderer.training.unbiased_fraction"):

@@ -18,6 +18,7 @@ stores whatever direction the training targets used), radiance linear RGB float3
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import torch
@@ -51,6 +52,8 @@ class RadianceCache:
     Attributes:
         n_steps: optimiser steps taken.
         n_skipped_steps: training steps skipped because the loss or a gradient was NaN/Inf.
+        training_backend: ``"eager"`` or ``"compiled"`` (``settings.compile_training``; a failed compile falls
+            back to eager for the rest of the run, its reason in ``training_backend_reason``).
     """
 
     def __init__(self, inputs: InputBuilder, network: CacheNetwork, optimizer: torch.optim.Optimizer,
@@ -64,6 +67,28 @@ class RadianceCache:
         self.n_steps = 0
         self.n_skipped_steps = 0
         self.n_consecutive_skipped = 0  # skipped steps since the last good one
+        self.training_backend = "compiled" if settings.compile_training else "eager"
+        self.training_backend_reason: str | None = None
+        self._compiled_loss = None
+
+    def _loss(self, raw: Tensor, targets: Tensor) -> Tensor:
+        return relative_l2_luminance(self.network(raw), targets, self.settings.target_clamp)
+
+    def _training_loss(self, raw: Tensor, targets: Tensor) -> Tensor:
+        """The loss of one training batch, through ``torch.compile`` when asked (its backward is compiled with it:
+        AOTAutograd). Dynamic batch sizes: one graph serves every batch. A compile that fails falls back to eager
+        with a warning (once)."""
+        if self.training_backend == "compiled":
+            if self._compiled_loss is None:
+                self._compiled_loss = torch.compile(self._loss, dynamic=True, fullgraph=True)
+            try:
+                return self._compiled_loss(raw, targets)
+            except Exception as exc:  # a missing C++ compiler or an unsupported op: the eager step still trains
+                self.training_backend = "eager"
+                self.training_backend_reason = f"torch.compile of the training step failed: {type(exc).__name__}: " \
+                    f"{str(exc).splitlines()[0] if str(exc) else ''}"
+                warnings.warn(f"nrc: {self.training_backend_reason}; training eagerly", stacklevel=2)
+        return self._loss(raw, targets)
 
     @property
     def n_parameters(self) -> int:
@@ -110,7 +135,7 @@ class RadianceCache:
         if positions.shape[0] == 0:
             return 0.0
         raw = self._raw(positions, directions)
-        loss = relative_l2_luminance(self.network(raw), targets.to(self.device), self.settings.target_clamp)
+        loss = self._training_loss(raw, targets.to(self.device))
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         # NaN/Inf anywhere in a gradient makes its sum non-finite (one cheap reduction per tensor; a sum

@@ -9,6 +9,9 @@ Keys (all validated; unknown keys are errors):
 * ``ema``: ``alpha`` in ``[0, 1)`` (0.99; 0 disables averaging).
 * ``loss``: ``target_clamp`` (> 0, radiance units): targets are clamped to ``[-c, c]``.
 * ``query_chunk``: points per forward pass in :meth:`RadianceCache.query` (bounds memory).
+* ``compile_training``: ``torch.compile`` the training step's forward, loss and backward (dynamic batch size;
+  the fused Adam step is already one kernel). Off by default: on the CPU it measured no faster than eager
+  (``docs/benchmarks.md``, "Frames bounded by work") and costs a ~30 s compile on a cold cache.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ class CacheSettings:
     ema_alpha: float
     target_clamp: float
     query_chunk: int
+    compile_training: bool = False
 
     @classmethod
     def from_config(cls, cfg: ConfigReader) -> CacheSettings:
@@ -52,6 +56,7 @@ class CacheSettings:
             ema_alpha=ema.get_float("alpha", lo=0.0, hi=1.0, hi_open=True),
             target_clamp=loss.get_float("target_clamp", lo=0.0, lo_open=True),
             query_chunk=cfg.get_int("query_chunk", 1 << 16, lo=1),
+            compile_training=cfg.get_bool("compile_training", False),
         )
         for block in (net, opt, ema, loss, cfg):
             block.finish()

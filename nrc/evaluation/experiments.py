@@ -707,6 +707,30 @@ def crossover_summary(docs: Path, link: str = "[`docs/results.md`](docs/results.
     return text + "."
 
 
+def crossover_figure(docs: Path) -> list[str] | None:
+    """The README's crossover block: the map's plot (``docs/results/<CROSSOVER>/map.png``, written by
+    ``scripts/crossover_map.py``) and a caption of two lines (what the plot shows, where NRC + OIDN wins, the
+    warm cache's best point); ``None`` without the map."""
+    m = _read_json(docs / "results" / CROSSOVER / "map.json")
+    pts = [p for p in (m or {}).get("points", []) if p.get("ratio_oidn") is not None]
+    if not pts or not (docs / "results" / CROSSOVER / "map.png").is_file():
+        return None
+    size = CROSSOVER.split("_")[-1].replace("x", " x ")
+    wins = sorted((p for p in pts if p["ratio_oidn"] < 1), key=lambda p: p["tau_median"])
+    best = min(pts, key=lambda p: p["ratio_oidn"])
+    verdict = (f"NRC wins from optical depth {wins[0]['tau_median']:.0f} on ({len(wins)} of {len(pts)} points)"
+               if wins else f"NRC wins nowhere (best {best['ratio_oidn']:.2g}x at optical depth "
+               f"{best['tau_median']:.0f})")
+    warm = [p for p in ((_read_json(docs / "results" / (CROSSOVER + "_warm") / "map.json") or {}).get("points", []))
+            if p.get("ratio_oidn") is not None]
+    if warm:
+        w = min(warm, key=lambda p: p["ratio_oidn"])
+        verdict += f"; warm cache (150 frames): {w['ratio_oidn']:.2g}x at optical depth {w['tau_median']:.0f}"
+    return [f"[![Where NRC pays off: the crossover map](docs/results/{CROSSOVER}/map.png)](docs/results.md)",
+            f"NRC + OIDN's relMSE over the path tracer + OIDN's at equal time per frame after 30 frames, {size} "
+            f"(below 1: NRC wins). {verdict}."]
+
+
 def _other_sizes(docs: Path) -> dict[str, dict]:
     """The crossover map's points at other image sizes (``docs/results/crossover_<W>x<H>/map.json`` beside
     :data:`CROSSOVER`), the thickest point of each."""
@@ -766,9 +790,9 @@ def readme_blocks(docs: Path) -> dict[str, list[str]]:
     """The README's generated caption paragraphs, per block name, from the result files under ``docs``."""
     figures = _read_json(docs / "images" / "figures.json") or {}
     cmp = _read_json(docs / "images" / "nrc_vs_pt.json") or figures.get("comparison")
-    cross = crossover_summary(docs)
-    return {"crossover": [cross] if cross else ["(not measured: `docs/results/crossover_160x90/map.json` is missing; "
-                                                 "`python scripts/crossover_map.py` writes it)"],
+    cross = crossover_figure(docs)
+    return {"crossover": cross or ["(not measured: `docs/results/crossover_160x90/map.json` or `map.png` is "
+                                   "missing; `python scripts/crossover_map.py` writes them)"],
             "clouds": readme_clouds(figures),
             "nrc_vs_pt": readme_comparison(cmp, figures, speed_summaries(docs)),
             "sun": readme_animation(figures)}
@@ -789,10 +813,12 @@ def _wrap(text: str, width: int = README_WIDTH) -> list[str]:
 
 
 def block_markdown(paragraphs: list[str]) -> list[str]:
-    """Italic caption paragraphs, wrapped, a blank line between them."""
+    """Italic caption paragraphs, wrapped, a blank line between them; a paragraph that is an image (``![``, or a
+    linked one) stays as it is."""
     out: list[str] = []
     for par in paragraphs:
-        out += ([""] if out else []) + _wrap(f"*{par.strip()}*")
+        text = par.strip()
+        out += ([""] if out else []) + ([text] if text.startswith(("![", "[![")) else _wrap(f"*{text}*"))
     return out
 
 

@@ -23,7 +23,7 @@ Estimator (per camera sample; SCENE.md conventions):
 Execution: the shared transport core (:mod:`nrc.render.wavefront`) -- the same step code for
 ``renderer.backend=eager`` and ``compiled`` (``auto`` chooses, see :mod:`nrc.render.wavefront.setup`). A fixed
 working set of ``renderer.slots`` paths is refilled from the queue of camera samples; peak memory is the
-state (136 bytes a slot, 9 MB at 65,536 slots), the shadow queue and the ``(H x W x 3)`` image, independent of
+state (156 bytes a slot, 10 MB at 65,536 slots), the shadow queue and the ``(H x W x 3)`` image, independent of
 image size and spp. Random numbers are counter-based per (seed, sample id, step): the image does not depend
 on the slot count.
 """
@@ -66,7 +66,7 @@ class PathTracerSettings:
     ``conf/renderer/shared/wavefront.yaml`` (read here as required keys); unknown keys are errors naming the key."""
 
     slots: int
-    """Paths in flight (the working set); memory grows linearly with it (136 bytes a slot)."""
+    """Paths in flight (the working set); memory grows linearly with it (156 bytes a slot)."""
     shadow_batch: int
     """Queued next-event rays traced per estimator call (eager, or estimators without a per-step form)."""
     brick: int | str

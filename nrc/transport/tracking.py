@@ -14,7 +14,7 @@ Majorants. Two modes share one loop (:func:`track`):
   consumes that much and steps to the next brick (by memorylessness this is the same as restarting the
   exponential at the boundary, minus one random number); otherwise it takes a tentative collision at
   ``t + tau / majorant`` inside the brick and draws a new sample. A zero-majorant brick is crossed in one step
-  with no lookup, and so is the whole empty cube around it: :func:`skip_radius` stores per brick the radius
+  with no lookup, and so is the whole empty cube around it: :func:`~nrc.volume.majorant.skip_radius` stores per brick the radius
   ``r`` of the cube of empty bricks centred on it, and the ray jumps to that cube's exit.
 
 The loop does one event per unfinished ray and iteration (a brick step for some rays, a lookup for the others,
@@ -30,7 +30,6 @@ Every looked-up ``sigma_t`` is checked against the majorant that was used for it
 from __future__ import annotations
 
 import math
-import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -38,7 +37,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from nrc.volume.majorant import BrickTables, next_segment
+from nrc.volume.majorant import MAX_SKIP, BrickTables, next_segment, skip_radius  # noqa: F401 (re-exported)
 
 if TYPE_CHECKING:  # pragma: no cover
     from nrc.volume.grid import DensityGrid
@@ -139,35 +138,12 @@ _RES = 14  # delta: collision distance; bounds: the brick's minorant
 _NCOL = 15
 _FOLD = 1e30  # residual ratio tracking: prod above this takes exp(-tauc) in (see track)
 
-MAX_SKIP = 16
-_skip_cache: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def skip_radius(majorants: MajorantGrid, max_radius: int = MAX_SKIP) -> Tensor:
-    """Empty-space radius per brick ``(bx, by, bz)`` (float32): ``r >= 1`` when every brick within L-inf
-    distance ``r - 1`` has a zero majorant (bricks outside the grid count as empty), 0 for non-empty bricks;
-    capped at ``max_radius``. A ray in a brick of radius ``r`` can cross the ``(2r-1)^3`` empty cube around it
-    in one step. Cached per majorant grid (recomputed when its majorant tensor changes)."""
-    key = (majorants.majorant.data_ptr(), majorants.majorant._version, int(max_radius))
-    hit = _skip_cache.get(majorants)
-    if hit is not None and hit[0] == key:
-        return hit[1]
-    covered = (majorants.majorant > 0).to(torch.float32)[None, None]
-    r = torch.zeros(majorants.shape, dtype=torch.float32, device=covered.device)
-    for k in range(1, int(max_radius) + 1):
-        free = covered[0, 0] == 0
-        if not bool(free.any()):
-            break
-        r = torch.where(free, torch.full_like(r, float(k)), r)
-        covered = torch.nn.functional.max_pool3d(covered, 3, stride=1, padding=1)
-    _skip_cache[majorants] = (key, r)
-    return r
 
 
 class MajorantWalk:
     """The batched majorant walk of the eager code (the estimators, equi-angular sampling, the optical-depth
     bounds) over a :class:`~nrc.volume.majorant.MajorantGrid`: the rays advance lazily, one brick (or one empty
-    cube, :func:`skip_radius`) per inner step, only where the current exponential sample reaches past the current
+    cube, :func:`~nrc.volume.majorant.skip_radius`) per inner step, only where the current exponential sample reaches past the current
     brick. Each step is :func:`nrc.volume.majorant.next_segment`, the same stateless brick step the compiled
     transport step runs (the state is the ray's point: no DDA bookkeeping across compaction).
     :func:`majorant_segments` iterates it segment by segment."""
@@ -237,7 +213,7 @@ class MajorantWalk:
         """Move the rays ``sub`` (row indices of ``S``, in place) across their current segment: their exponential
         sample reaches past it, so they consume its majorant optical depth and enter the next brick (or reach their
         segment end, ``t = b``). A zero-majorant brick is crossed in this one step, and so is the whole empty cube
-        around it (:func:`skip_radius`). ``sub=None`` moves every row (in place, no gather)."""
+        around it (:func:`~nrc.volume.majorant.skip_radius`). ``sub=None`` moves every row (in place, no gather)."""
         R = S if sub is None else S.index_select(0, sub)
         t = R[:, _T]
         b = R[:, _B]

@@ -25,6 +25,7 @@ build a new one when the scale changes.
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Callable
 
 import torch
@@ -90,55 +91,97 @@ class MajorantGrid:
         return brick
 
 
+MAX_SKIP = 16
+_skip_cache: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def skip_radius(majorants: MajorantGrid, max_radius: int = MAX_SKIP) -> Tensor:
+    """Empty-space radius per brick ``(bx, by, bz)`` (float32): ``r >= 1`` when every brick within L-inf
+    distance ``r - 1`` has a zero majorant (bricks outside the grid count as empty), 0 for non-empty bricks;
+    capped at ``max_radius``. A ray in a brick of radius ``r`` can cross the ``(2r-1)^3`` empty cube around it
+    in one step. Cached per majorant grid (recomputed when its majorant tensor changes)."""
+    key = (majorants.majorant.data_ptr(), majorants.majorant._version, int(max_radius))
+    hit = _skip_cache.get(majorants)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    covered = (majorants.majorant > 0).to(torch.float32)[None, None]
+    r = torch.zeros(majorants.shape, dtype=torch.float32, device=covered.device)
+    for k in range(1, int(max_radius) + 1):
+        free = covered[0, 0] == 0
+        if not bool(free.any()):
+            break
+        r = torch.where(free, torch.full_like(r, float(k)), r)
+        covered = torch.nn.functional.max_pool3d(covered, 3, stride=1, padding=1)
+    _skip_cache[majorants] = (key, r)
+    return r
+
+
 class BrickTables:
-    """Majorant grids in the form a per-slot step consumes: one flat table of brick majorants and, per grid, a
-    few scalars (``values``), so that a compiled step takes both as *inputs* (one graph for every scene).
+    """Majorant grids in the form a per-slot step consumes: one flat table of brick majorants, then the bricks'
+    empty-space radii (:func:`skip_radius`), and, per grid, a few scalars (``values``), so that a compiled step
+    takes both as *inputs* (one graph for every scene).
 
     Table 0 serves free flights and table 1 shadow rays (one table when both use the same grid). A step finds
     a ray's brick from its current point, nudged ``1e-4`` brick edges along the ray (a point on a face
-    belongs to the brick it enters), and the distance to that brick's exit (:meth:`segment`). No traversal
-    state is carried between steps (:func:`next_segment`), so refills, shadow rays and compaction need no
-    bookkeeping.
+    belongs to the brick it enters), and the distance to that brick's exit, or, in an empty brick, to the exit
+    of the empty cube around it (:meth:`segment`: the eager walk's jump, so a camera ray crosses empty space in a
+    few steps). No traversal state is carried between steps (:func:`next_segment`), so refills, shadow rays and
+    compaction need no bookkeeping.
 
     Args:
         free_flight, shadow: the :class:`MajorantGrid` of each kind of ray.
     """
 
-    PER_TABLE = 11  # origin (3), last brick index (3), flat stride (3), brick edge, offset into flat
+    PER_TABLE = 12  # origin (3), last brick index (3), flat stride (3), brick edge, offset into flat, radii offset
 
     def __init__(self, free_flight: MajorantGrid, shadow: MajorantGrid) -> None:
         grids = [free_flight] if shadow is free_flight else [free_flight, shadow]
         self.n_tables = len(grids)
-        self.flat = torch.cat([g.majorant.reshape(-1) for g in grids]).float().contiguous()
+        majorants = [g.majorant.reshape(-1).float() for g in grids]
+        radii = [skip_radius(g).reshape(-1).float() for g in grids]
+        self.flat = torch.cat(majorants + radii).contiguous()
+        n_maj = sum(m.numel() for m in majorants)
         self.values: list[float] = []
         offset = 0
         for g in grids:
-            self.values += self.grid_values(g, offset)
+            self.values += self.grid_values(g, offset, n_maj)
             offset += g.majorant.numel()
 
     @staticmethod
-    def grid_values(g: MajorantGrid, offset: int = 0) -> list[float]:
+    def grid_values(g: MajorantGrid, offset: int = 0, radii: int = 0) -> list[float]:
         """One grid's :data:`PER_TABLE` values: origin (3), last brick index (3), flat stride (3), brick edge,
-        offset of its first brick in the flat table."""
+        offset of its first brick in the flat table, and how far after a brick's majorant its radius lies (0: the
+        table has no radii)."""
         return ([float(v) for v in g.origin.tolist()] + [float(n - 1) for n in g.shape]
-                + [float(g.shape[1] * g.shape[2]), float(g.shape[2]), 1.0, float(g.brick_size), float(offset)])
+                + [float(g.shape[1] * g.shape[2]), float(g.shape[2]), 1.0, float(g.brick_size), float(offset),
+                   float(radii)])
 
     @staticmethod
     def segment(flat: Tensor, values: list, n_tables: int, o: tuple, d: tuple, t: Tensor,
-                shadow: Tensor) -> tuple[Tensor, Tensor]:
-        """``(majorant, t_exit)`` ``(S,)`` of the brick each ray ``o + t d`` (component form) is in at ``t``;
-        ``shadow`` picks table 1 per slot when there are two. ``values`` are :attr:`values` as numbers or
-        0-d tensors. ``t_exit > t`` always (a ray on a face moves on by the nudge)."""
+                shadow: Tensor | bool) -> tuple[Tensor, Tensor]:
+        """``(majorant, t_exit)`` ``(S,)`` of the brick (or empty cube) each ray ``o + t d`` (component form) is in
+        at ``t``; ``shadow`` (per slot, or one bool for all) picks table 1 when there are two. ``values`` are
+        :attr:`values` as numbers or 0-d tensors. ``t_exit > t`` always (a ray on a face moves on by the nudge)."""
         k = BrickTables.PER_TABLE
         tables = [values[i * k:(i + 1) * k] for i in range(n_tables)]
 
         def per_slot(j: int) -> Tensor:
+            if isinstance(shadow, bool):
+                return tables[1 if shadow and n_tables > 1 else 0][j] + torch.zeros_like(t)
             v0 = tables[0][j] + torch.zeros_like(t)
             if n_tables == 1:
                 return v0
             return torch.where(shadow, tables[1][j] + torch.zeros_like(t), v0)
 
-        idx, t_exit = next_segment([per_slot(j) for j in range(BrickTables.PER_TABLE)], o, d, t)
+        table = [per_slot(j) for j in range(k)]
+        n = flat.shape[0] - 1  # the flat input is padded by one zero (SceneInputs)
+        radii = table[11].long()
+
+        def reach(idx: Tensor) -> Tensor:  # half-width, in bricks, of the empty cube around the brick (0: none)
+            r = (flat[(idx + radii).clamp(max=n)] - 1.0).clamp(min=0.0)
+            return torch.where(radii > 0, r, torch.zeros_like(r))
+
+        idx, t_exit = next_segment(table, o, d, t, reach_of=reach)
         return flat[idx], t_exit
 
 
@@ -153,7 +196,7 @@ def next_segment(table: list, o: tuple, d: tuple, t: Tensor, nudge: Tensor | Non
     brick edge, offset), as 0-d or per-ray tensors. The brick is the one holding the point ``nudge`` further on
     (default ``1e-4`` brick edges: a point on a face belongs to the brick it enters); ``t_exit >= t + nudge``.
     ``reach_of(index)``: the half-width, in bricks, of an empty cube centred on the brick that the ray may cross in
-    this one step (:func:`nrc.transport.tracking.skip_radius`); ``None``: one brick."""
+    this one step (:func:`skip_radius`); ``None``: one brick."""
     size = table[9]
     tn = t + (size * 1e-4 if nudge is None else nudge)
     idx = table[10].long()

@@ -160,7 +160,10 @@ class HashGridEncoding(nn.Module):
             torch.bitwise_xor(xy[:, :, :, None], tz[nd:, None, None], out=idx[nd:])
             idx[nd:] += self._level_offset[nd:, :, :, None, None]
         w1 = torch.empty(n_levels, 3, 2, n, dtype=torch.float32, device=x.device)
-        torch.sub(1.0, frac, out=w1[:, :, 0])
+        if torch.compiler.is_compiling():  # Dynamo refuses a non-contiguous out= (compile_training)
+            w1[:, :, 0] = 1.0 - frac
+        else:
+            torch.sub(1.0, frac, out=w1[:, :, 0])
         w1[:, :, 1] = frac
         wx, wy, wz = w1.unbind(1)  # (L, 2, N) each
         w = (wx[:, :, None] * wy[:, None, :])[:, :, :, None] * wz[:, None, None]

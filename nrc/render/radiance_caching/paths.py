@@ -85,6 +85,8 @@ class PathSet:
     spp: int
     train_xy: Tensor
     train_unbiased: Tensor
+    frame: int = 0
+    """The frame (its training paths take the pool's block ``frame % blocks``, :class:`TrainingPool`)."""
 
     @property
     def n_render(self) -> int:
@@ -93,6 +95,90 @@ class PathSet:
     @property
     def n_train(self) -> int:
         return int(self.train_xy.shape[0])
+
+
+class TrainingPool:
+    """The training paths' records across frames (``renderer.training.carry_frames`` = k).
+
+    A frame's training paths take block ``frame % (k + 1)`` of the pool: training path ``k`` of the frame is pool
+    path ``tid = block * n_train + k`` (its cache query's slot ``n_render + tid``), and owns the accumulator rows
+    and records ``[tid V, (tid + 1) V)``. A frame stops when its render paths are done; its training paths that
+    are still going are carried (:attr:`carry`, their packed slots) into the next frame's wavefront and end there
+    or later, with their rows intact. A block is reused ``k + 1`` frames later: paths of its earlier frame that are
+    still going then are dropped (their records never count). ``k = 0``: one block, and a frame waits for its
+    training paths.
+
+    Memory: ``(k + 1) n_train V`` records (positions, directions, validity, and in the accumulator the radiance
+    rows, twice with ``cache_target=indirect``), ``(k + 1) n_train`` flags, and the carried slots (at most
+    ``(k + 1) n_train``, bounded by the renderer's ``slots``).
+    """
+
+    def __init__(self, n_train: int, V: int, blocks: int, device: torch.device) -> None:
+        self.n_train, self.V, self.blocks, self.device = n_train, V, blocks, device
+        n = blocks * n_train
+        self.rec_x = torch.zeros(n * V, 3, device=device)
+        self.rec_d = torch.zeros(n * V, 3, device=device)
+        self.rec_valid = torch.zeros(n * V, dtype=torch.bool, device=device)
+        self.scattered = torch.zeros(n, dtype=torch.bool, device=device)  # the path had a real collision
+        self.finished = torch.zeros(n, dtype=torch.bool, device=device)  # the path has ended (its records complete)
+        self.started = torch.full((blocks,), -1, dtype=torch.long, device=device)  # each block's frame (-1: none)
+        self.carry: tuple[Tensor, Tensor] | None = None  # the slots in flight (packed F, I)
+
+    @property
+    def n_paths(self) -> int:
+        return self.blocks * self.n_train
+
+    def block(self, frame: int) -> int:
+        return frame % self.blocks
+
+    def tids(self, frame: int) -> slice:
+        """The pool paths of ``frame``'s training paths."""
+        b = self.block(frame)
+        return slice(b * self.n_train, (b + 1) * self.n_train)
+
+    def in_flight(self, layout: Any) -> Tensor:
+        """``(n_paths,)`` bool: the pool paths carried in flight."""
+        out = torch.zeros(self.n_paths, dtype=torch.bool, device=self.device)
+        if self.carry is not None:
+            out[self.carry[1][layout.i("rec_base")] // self.V] = True
+        return out
+
+    def start(self, frame: int, layout: Any, acc_rows: list[Tensor]) -> int:
+        """Free ``frame``'s block for its new training paths: drop the carried paths still in flight from the
+        block's earlier frame (returned: how many) and clear the block's records, flags and accumulator rows
+        (``acc_rows``: views of the pool's rows in the accumulator, ``(n_paths V, 3)`` each)."""
+        b, V = self.block(frame), self.V
+        dropped = 0
+        if self.carry is not None:
+            Fc, Ic = self.carry
+            mine = torch.div(Ic[layout.i("rec_base")] // V, self.n_train, rounding_mode="floor") == b
+            dropped = int(mine.sum())
+            if dropped:
+                keep = (~mine).nonzero().squeeze(1)
+                self.carry = (Fc[:, keep].contiguous(), Ic[:, keep].contiguous()) if len(keep) else None
+        t = self.tids(frame)
+        r = slice(t.start * V, t.stop * V)
+        for rows in acc_rows:
+            rows[r] = 0.0
+        self.rec_valid[r] = False
+        self.scattered[t] = False
+        self.finished[t] = False
+        self.started[b] = frame
+        return dropped
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"rec_x": self.rec_x.cpu(), "rec_d": self.rec_d.cpu(), "rec_valid": self.rec_valid.cpu(),
+                "scattered": self.scattered.cpu(), "finished": self.finished.cpu(), "started": self.started.cpu(),
+                "carry": [t.cpu() for t in self.carry] if self.carry is not None else None}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        for name in ("rec_x", "rec_d", "rec_valid", "scattered", "finished", "started"):
+            mine = getattr(self, name)
+            if tuple(state[name].shape) != tuple(mine.shape):
+                raise ValueError(f"training pool {name} is {tuple(state[name].shape)}, expected {tuple(mine.shape)}")
+            mine.copy_(state[name].to(mine.device))
+        carry = state.get("carry")
+        self.carry = tuple(t.to(self.device) for t in carry) if carry is not None else None
 
 
 @dataclass
@@ -119,7 +205,11 @@ class FrameTrace:
     scattered: Tensor
     counts: dict[str, int] = field(default_factory=dict)
     timers: dict[str, float] = field(default_factory=dict)
-    direct: Tensor | None = None  # cache_target=indirect: (N_train * V, 3) each record's direct light
+    direct: Tensor | None = None  # cache_target=indirect: (pool paths * V, 3) each record's direct light
+    pool: TrainingPool | None = None  # the training pool (rows, records and flags of every block)
+    finished: Tensor | None = None  # (pool paths,) bool: the pool paths that ended in this frame
+    in_flight: Tensor | None = None  # (pool paths,) bool: carried into the next frame
+    dropped: int = 0  # carried paths dropped at this frame's start (older than carry_frames)
     reuse: Any = None  # the render paths' reuse vertices (reuse.VertexRecord; None without reuse)
     # renderer.debias: (n_render, 3) each render sample's suffix row (a view of acc; zero where not continued),
     # query_cont (Q,) the queries of continued paths, whose (sample id, throughput at the vertex) are cont_pid,
@@ -163,6 +253,11 @@ class NRCPathTracer:
         self.frames = 1  # frames the renderer will trace (backend=auto weighs a compile against all of them)
         self.backend: str | None = None
         self.backend_reason: str | None = None
+        self.carry_frames = tr.carry_frames  # frames a training path may go on past its own (TrainingPool)
+        self.pool: TrainingPool | None = None
+        self._pool_render = 0
+        self._pool_rows: list[Tensor] | None = None  # a checkpoint's pool rows, until the accumulator exists
+        self._acc: Tensor | None = None  # the accumulator, kept across frames (the pool's rows)
 
     def _core(self, uniforms):
         if uniforms not in self._cores:
@@ -171,8 +266,10 @@ class NRCPathTracer:
         return self._cores[uniforms]
 
     # ------------------------------------------------------------------ new paths
-    def _new_paths(self, ids: Tensor, ps: PathSet, rng: RandomSource, layout, discard: int) -> tuple[Tensor, Tensor]:
-        """Packed new paths for ids; training paths accumulate into ``discard`` until their first vertex."""
+    def _new_paths(self, ids: Tensor, ps: PathSet, rng: RandomSource, layout, discard: int,
+                   first_tid: int) -> tuple[Tensor, Tensor]:
+        """Packed new paths for ids; training path ``k`` is pool path ``first_tid + k`` and accumulates into
+        ``discard`` until its first vertex."""
         cam, dev = ps.camera, self.device
         n = len(ids)
         key = path_key(rng.seed, ids)
@@ -191,45 +288,76 @@ class NRCPathTracer:
             never = torch.zeros(n, dtype=torch.bool, device=dev)
         F, I = camera_paths(layout, cam, self.scene.grid, pix, jitter, key)
         F[layout.f("x_prev")] = F[layout.f("o")]
+        tid = first_tid + k
         I[layout.i("rec")] = -1
         I[layout.i("dest")] = torch.where(is_train, discard, pix)
-        I[layout.i("pid")] = ids
+        I[layout.i("pid")] = torch.where(is_train, ps.n_render + tid, ids)
         I[layout.i("extra")] = torch.where(is_train, self.extra_vertices, 0)
         I[layout.i("never")] = never.long()
-        I[layout.i("rec_base")] = torch.where(is_train, k * self.V, -1)
+        I[layout.i("rec_base")] = torch.where(is_train, tid * self.V, -1)
         return F, I
+
+    def pool_for(self, n_render: int, n_train: int) -> TrainingPool:
+        """The training pool for these path counts (a new, empty one when they changed)."""
+        pool = self.pool
+        if pool is None or pool.n_train != n_train or self._pool_render != n_render:
+            pool = self.pool = TrainingPool(n_train, self.V, self.carry_frames + 1, self.device)
+            self._pool_render = n_render
+            self._acc = None
+        return pool
 
     # ------------------------------------------------------------------ main loop
     def trace(self, ps: PathSet, lights: LightSampler, rng: RandomSource, debias_q: float = 0.0) -> FrameTrace:
-        """Trace every path of ``ps``; NEE lands in ``acc``, cache terminations are returned as queries
-        (``debias_q``: the probability that a render path goes on past its cache termination, with
-        ``renderer.debias``; in ``(0, 1]``)."""
+        """Trace every path of ``ps`` and the training paths carried from earlier frames; NEE lands in ``acc``,
+        cache terminations are returned as queries (``debias_q``: the probability that a render path goes on past
+        its cache termination, with ``renderer.debias``; in ``(0, 1]``).
+
+        ``acc`` (see the module docstring) persists across frames: its pixel, discard and suffix rows are cleared
+        each frame, a pool block's rows when the block is started (:class:`TrainingPool`)."""
         dev, V = self.device, self.V
         core = self._core(rng.counter_uniforms)
+        pool = self.pool_for(ps.n_render, ps.n_train)
         n_pixels = ps.camera.num_pixels
         total = ps.n_render + ps.n_train
-        discard = n_pixels + ps.n_train * V
+        n_rec = pool.n_paths * V
+        discard = n_pixels + n_rec
         indirect = self.cache_target == "indirect"
-        n_rows = discard + 1 + (ps.n_train * V if indirect else 0)
+        n_rows = discard + 1 + (n_rec if indirect else 0)
         suffix_base = n_rows if self.debias else None
         if self.debias:
             if not 0.0 < debias_q <= 1.0:
                 raise ValueError(f"debias_q must be in (0, 1], got {debias_q}")
             n_rows += ps.n_render
-        acc = torch.zeros(n_rows, 3, device=dev)
+        if self._acc is None or self._acc.shape[0] != n_rows:
+            self._acc = torch.zeros(n_rows, 3, device=dev)
+            if self._pool_rows is not None:  # the pool's rows of a resumed run (load_pool)
+                self._acc[n_pixels:n_pixels + n_rec] = self._pool_rows[0]
+                if indirect:
+                    self._acc[discard + 1:discard + 1 + n_rec] = self._pool_rows[1]
+                self._pool_rows = None
+        acc = self._acc
+        acc[:n_pixels] = 0.0
+        acc[discard:discard + 1] = 0.0
+        if suffix_base is not None:
+            acc[suffix_base:] = 0.0
         machine, self.backend, self.backend_reason = core.choose(total * self.frames)
+        layout = machine.step.layout
+        pool_rows = [acc[n_pixels:discard]] + ([acc[discard + 1:discard + 1 + n_rec]] if indirect else [])
+        dropped = pool.start(ps.frame, layout, pool_rows)
+        finished_before = pool.finished.clone()
         rec = self.settings.reuse.record(ps.n_render, self.scene.g, self.scene.albedo, dev)
-        hv = NRCCollector(n_pixels, ps.n_render, V, torch.zeros(ps.n_train * V, 3, device=dev),
-                          torch.zeros(ps.n_train * V, 3, device=dev),
-                          torch.zeros(ps.n_train * V, dtype=torch.bool, device=dev),
-                          torch.zeros(ps.n_train, dtype=torch.bool, device=dev), discard + 1 if indirect else None,
-                          debias_q=debias_q if self.debias else 0.0, suffix_base=suffix_base, watchers=(rec,))
+        hv = NRCCollector(n_pixels, ps.n_render, V, pool.rec_x, pool.rec_d, pool.rec_valid, pool.scattered,
+                          discard + 1 if indirect else None, debias_q=debias_q if self.debias else 0.0,
+                          suffix_base=suffix_base, watchers=(rec,), finished=pool.finished)
         queues = Queues(core.shadow_queue(machine, self.shadow_batch, rng.generator),
                         core.equiangular_queue(self.shadow_batch, rng.generator))
         frame = {"debias_q": debias_q} if self.debias else {}
         wf = Wavefront(machine, core.inputs_for(lights, **frame), lights, self.slots, queues, hv)
-        layout = machine.step.layout
-        wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, discard), acc)
+        first_tid = pool.tids(ps.frame).start
+        i_rec = layout.i("rec_base")
+        keep = (lambda I: I[i_rec] >= 0) if self.carry_frames else None  # training paths may go on later
+        pool.carry = wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, discard, first_tid), acc,
+                            carry=pool.carry, keep=keep)
         counts = dict(wf.counts)
         timers = {"trace_" + k: v for k, v in wf.timers.items()}
         timers["compile"] = core.last_startup_s
@@ -246,11 +374,38 @@ class NRCPathTracer:
                           torch.zeros(0, dtype=torch.long, device=dev),
                           cont_beta=torch.cat(hv.continued["beta"]) if hv.continued["beta"] else
                           torch.zeros(0, 3, device=dev))
+        tids = pool.tids(ps.frame)
         return FrameTrace(
             acc=acc, n_pixels=n_pixels,
             query_x=cat("x", (0, 3), torch.float32), query_d=cat("d", (0, 3), torch.float32),
             query_w=cat("w", (0, 3), torch.float32), query_dest=cat("dest", (0,), torch.long),
-            query_pid=cat("pid", (0,), torch.long), rec_x=hv.rec_x, rec_d=hv.rec_d, rec_valid=hv.rec_valid,
-            scattered=hv.scattered, counts=counts, timers=timers,
-            direct=acc[discard + 1:discard + 1 + ps.n_train * V] if indirect else None, reuse=rec, **debias,
+            query_pid=cat("pid", (0,), torch.long), rec_x=pool.rec_x[tids.start * V:tids.stop * V],
+            rec_d=pool.rec_d[tids.start * V:tids.stop * V], rec_valid=pool.rec_valid[tids.start * V:tids.stop * V],
+            scattered=pool.scattered[tids], counts=counts, timers=timers,
+            direct=acc[discard + 1:discard + 1 + n_rec] if indirect else None, reuse=rec, pool=pool,
+            finished=pool.finished & ~finished_before, in_flight=pool.in_flight(layout), dropped=dropped, **debias,
         )
+
+    # ------------------------------------------------------------------ checkpoints
+    def pool_state(self) -> dict[str, Any] | None:
+        """The training pool with its accumulator rows (the carried paths' partial sums), for a checkpoint."""
+        pool, acc = self.pool, self._acc
+        if pool is None or acc is None:
+            return None
+        n_pixels, n_rec = self._pool_render // self.scene.integrator.spp, pool.n_paths * self.V
+        rows = [acc[n_pixels:n_pixels + n_rec].cpu()]
+        if self.cache_target == "indirect":
+            rows.append(acc[n_pixels + n_rec + 1:n_pixels + 2 * n_rec + 1].cpu())
+        return {**pool.state_dict(), "rows": rows, "n_render": self._pool_render}
+
+    def load_pool(self, state: dict[str, Any] | None, n_render: int, n_train: int) -> None:
+        """Restore :meth:`pool_state` (``None``: an empty pool, e.g. a checkpoint of an older nrc: the paths that
+        were in flight are lost, a documented difference from the uninterrupted run)."""
+        self.pool, self._acc, self._pool_rows = None, None, None
+        pool = self.pool_for(n_render, n_train)
+        if state is None:
+            return
+        if int(state["n_render"]) != n_render:
+            raise ValueError(f"the checkpoint's frames have {state['n_render']} render paths, this one {n_render}")
+        pool.load_state_dict(state)
+        self._pool_rows = [r.to(self.device) for r in state["rows"]]

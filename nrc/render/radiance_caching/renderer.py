@@ -56,7 +56,8 @@ from nrc.camera import Camera
 from nrc.render.radiance_caching.frame_log import LIGHT_SCALARS, FrameLog
 from nrc.render.radiance_caching.inference_filter import filtered_query
 from nrc.render.radiance_caching.paths import NRCPathTracer, PathSet
-from nrc.render.radiance_caching.settings import NRCSettings, app_checks, auto_unbiased_fraction, ring_size
+from nrc.render.radiance_caching.settings import (CARRY_FRAMES, UNBIASED_FRACTION, NRCSettings, app_checks,
+                                                  auto_training_regime, ring_size)
 from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 from nrc.transport.rng import RandomSource
@@ -139,10 +140,13 @@ class NRCRenderer:
             w, h = auto_training_size(self.medium_pixels, scene.camera.width, scene.camera.height,
                                       tr.paths_per_pixel, tr.min_paths, tr.max_paths)
             tr = replace(tr, width=w, height=h)
-        self.optical_depth = None  # the median over the camera rays, when unbiased_fraction is auto
-        if tr.unbiased_fraction is None:
-            fraction, self.optical_depth = auto_unbiased_fraction(scene, st.animate)
-            tr = replace(tr, unbiased_fraction=fraction)
+        self.optical_depth = None  # the median over the camera rays, when unbiased_fraction or carry_frames is auto
+        if tr.unbiased_fraction is None or tr.carry_frames is None:
+            regime, self.optical_depth = auto_training_regime(scene, st.animate)
+            if tr.unbiased_fraction is None:
+                tr = replace(tr, unbiased_fraction=UNBIASED_FRACTION[regime])
+            if tr.carry_frames is None:
+                tr = replace(tr, carry_frames=CARRY_FRAMES[regime])
         self.settings = st = replace(st, training=tr)  # the auto choices resolved
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)
@@ -204,7 +208,7 @@ class NRCRenderer:
         offset = rng.rand(1, 2)[0]
         train_xy = training_positions(self.train_order, tr.width, tr.height, camera.width, camera.height, offset)
         unbiased = rng.rand(tr.n_paths, 1)[:, 0] < tr.unbiased_fraction
-        ps = PathSet(camera, scene.integrator.spp, train_xy, unbiased)
+        ps = PathSet(camera, scene.integrator.spp, train_xy, unbiased, frame)
         lights = self.frame_lights(frame)
         q = st.debias.probability
         trace = self.tracer.trace(ps, lights, rng, q)
@@ -221,7 +225,8 @@ class NRCRenderer:
         # separate raw weights, such as a test stub, answers them with query).
         query_from = getattr(self.cache, "query_raw", None) if tr.query_weights == "raw" else None
         values, infer_counts = filtered_query(self.cache.query, trace.query_x, trace.query_d, trace.query_pid,
-                                              ps.n_render + ps.n_train, st.inference_batch, query_from, ps.n_render)
+                                              ps.n_render + trace.pool.n_paths, st.inference_batch, query_from,
+                                              ps.n_render)
         # Radiance is never negative: a linear output that dips below 0 (early frames) would otherwise
         # darken the image and, through self-training, feed negative targets back into the cache.
         nonfinite = int((~torch.isfinite(values)).any(dim=-1).sum()) if values.numel() else 0
@@ -241,24 +246,22 @@ class NRCRenderer:
             debias_stats["debias_negative_pixels"] = int((image < 0).any(dim=-1).sum())
         t2 = time.perf_counter()
 
+        records, valid, late = self._frame_records(trace, frame)
         V = tr.records_per_path
-        rows = acc[n_pix:n_pix + ps.n_train * V]
-        if trace.direct is None:
-            targets = training_targets(rows, ps.n_train, V, scene.albedo)
-        else:  # cache_target=indirect: each record's own direct light stays out of its target
-            targets = training_targets(rows + trace.direct, ps.n_train, V, scene.albedo) - trace.direct
-        records, valid = frame_records(trace.rec_x, trace.rec_d, targets, trace.rec_valid)
         mask = torch.zeros(tr.n_paths, dtype=torch.bool, device=self.device)
-        mask[self.train_order] = trace.scattered
+        mask[self.train_order] = trace.scattered | trace.in_flight[trace.pool.tids(frame)]
         batches = self.batch_filter.batches(mask.view(tr.height, tr.width))
+        started = torch.full((len(valid),), frame, dtype=torch.long, device=self.device)
+        if late is not None:  # training paths of earlier frames that ended in this one
+            self._place_late(records, valid, started, late, batches, V)
         losses = []
         for a, b in batches:
             batch = self.ring.fill(TrainingRecords(*(f[a * V:b * V] for f in records)), valid[a * V:b * V],
                                    rng.generator)
             losses.append(self.cache.train_step(*batch))
-        self.ring.push(records, valid)
+        self.ring.push(records, valid, started)
         if st.debias.enabled and st.debias.train_on_suffixes:  # unbiased suffixes: more records for later batches
-            self.ring.push(*debias.suffix_records(trace, q))
+            self.ring.push(*debias.suffix_records(trace, q), frame)
         t3 = time.perf_counter()
 
         stats: dict[str, Any] = {
@@ -266,11 +269,83 @@ class NRCRenderer:
             "loss": float(np.mean(losses)) if losses else None, "nonfinite_predictions": nonfinite,
             "train_batches": len(batches), "train_records_valid": int(valid.sum()),
             "training_pixels_scattering": int(trace.scattered.sum()),
+            **self._carry_stats(trace, frame),
             **{f"time_{k}_s": v for k, v in trace.timers.items()}, **trace.counts, **infer_counts,
             **{k: v for k, v in st.light_sampling.metrics(lights).items() if k in LIGHT_SCALARS}, **reuse_stats,
             **debias_stats,
         }
         return image, stats, losses
+
+    def _frame_records(self, trace: Any, frame: int) -> tuple[TrainingRecords, Tensor, tuple | None]:
+        """``(records, valid, late)``: the records of ``frame``'s own training paths in training-image order (a
+        path still in flight: invalid, filled from the ring buffer), and ``(records, valid, started frames)`` of
+        the paths of earlier frames that ended in this one (``None``: none). Targets by the backward recurrence
+        over each ended path's rows (:func:`training_targets`)."""
+        pool, V, dev = trace.pool, self.settings.training.records_per_path, self.device
+        fin = trace.finished.nonzero().squeeze(1)
+        ridx = (fin[:, None] * V + torch.arange(V, device=dev)).reshape(-1)
+        rows = trace.acc[trace.n_pixels + ridx]
+        albedo = self.scene.albedo
+        if trace.direct is None:
+            targets = training_targets(rows, len(fin), V, albedo)
+        else:  # cache_target=indirect: each record's own direct light stays out of its target
+            direct = trace.direct[ridx]
+            targets = training_targets(rows + direct, len(fin), V, albedo) - direct
+        recs, ok = frame_records(pool.rec_x[ridx], pool.rec_d[ridx], targets, pool.rec_valid[ridx])
+        own = pool.tids(frame)
+        mine = (ridx >= own.start * V) & (ridx < own.stop * V)
+        n = pool.n_train * V
+        records = TrainingRecords(*(torch.zeros(n, 3, device=dev) for _ in range(3)))
+        valid = torch.zeros(n, dtype=torch.bool, device=dev)
+        pos = ridx[mine] - own.start * V
+        for dst, src in zip(records, recs):
+            dst[pos] = src[mine]
+        valid[pos] = ok[mine]
+        late = None
+        if not bool(mine.all()):
+            other = ~mine
+            started = pool.started[torch.div(ridx[other] // V, pool.n_train, rounding_mode="floor")]
+            late = (TrainingRecords(*(f[other] for f in recs)), ok[other], started)
+        return records, valid, late
+
+    def _place_late(self, records: TrainingRecords, valid: Tensor, started: Tensor, late: tuple,
+                    batches: list[tuple[int, int]], V: int) -> None:
+        """Records of training paths of earlier frames that ended in this one (``late``): in order, into the
+        invalid records of the frame's trained batches (mostly this frame's paths still in flight, which take the
+        late paths' place: each late record is trained once, directly, as it would have been in its own frame);
+        the rest into the ring buffer, before the batches draw from it. ``records``, ``valid`` and ``started`` (the
+        frame each record's path started in) are updated in place."""
+        lrec, lok, lstart = late
+        in_batch = torch.zeros_like(valid)
+        for a, b in batches:
+            in_batch[a * V:b * V] = True
+        holes = (~valid & in_batch).nonzero().squeeze(1)
+        lv = lok.nonzero().squeeze(1)
+        k = min(len(holes), len(lv))
+        for dst, src in zip(records, lrec):
+            dst[holes[:k]] = src[lv[:k]]
+        valid[holes[:k]] = True
+        started[holes[:k]] = lstart[lv[:k]]
+        rest = lv[k:]
+        if len(rest):
+            self.ring.push(TrainingRecords(*(f[rest] for f in lrec)), torch.ones(len(rest), dtype=torch.bool,
+                                                                                   device=valid.device), lstart[rest])
+
+    @staticmethod
+    def _carry_stats(trace: Any, frame: int) -> dict[str, Any]:
+        """The training paths carried across frames: in flight at the frame's end, ended in this frame after their
+        own (and their mean delay in frames), dropped at its start (older than ``carry_frames``)."""
+        pool = trace.pool
+        own = pool.tids(frame)
+        late = trace.finished.clone()
+        late[own] = False
+        n_late = int(late.sum())
+        delay = None
+        if n_late:
+            blocks = torch.div(late.nonzero().squeeze(1), pool.n_train, rounding_mode="floor")
+            delay = float((frame - pool.started[blocks]).float().mean())
+        return {"training_paths_in_flight": int(trace.in_flight.sum()), "training_paths_late": n_late,
+                "training_late_frames": delay, "training_paths_dropped": trace.dropped}
 
     def _check_training(self, frame: int, stats: dict[str, Any]) -> None:
         """Warn about non-finite predictions and skipped steps; stop a cache that keeps diverging."""
@@ -295,6 +370,7 @@ class NRCRenderer:
                 "frame": frame, "cache": self.cache.state_dict(), "ring": self.ring.state_dict(),
                 "accum": accum.cpu(), "n_accum": n_accum, "history": plain(log.history),
                 "reuse": self.reuse.state_dict() if self.reuse is not None else None,
+                "pool": self.tracer.pool_state(),
                 "config": self.config_yaml})
         except OSError as exc:
             raise NRCError(f"cannot write the checkpoint {path}: {exc.strerror or exc}") from None
@@ -319,6 +395,12 @@ class NRCRenderer:
                                   f"camera renders {cam.width}x{cam.height}")
         log.load(state["history"])
         frame = int(state["frame"])
+        tr = self.settings.training
+        try:  # the training paths in flight, carried on exactly as the uninterrupted run does
+            self.tracer.load_pool(state.get("pool"), cam.num_pixels * self.scene.integrator.spp, tr.n_paths)
+        except (ValueError, KeyError, RuntimeError) as exc:
+            raise CheckpointError(f"renderer.resume: {path} does not fit this renderer's training paths "
+                                  f"({str(exc).splitlines()[0]})") from None
         if self.reuse is not None:  # the reservoirs of the last frame done, seen by its camera
             self.reuse.load_state_dict(state.get("reuse"), self.frame_camera(frame - 1), self.device)
         return frame, accum, int(state["n_accum"])
@@ -410,13 +492,16 @@ class NRCRenderer:
             "shadow_rays": int(sum(h.get("shadow_rays", []))),
             "equiangular_segments": int(sum(h.get("equiangular_segments", []))),
             "training_image": [st.training.width, st.training.height], "training_auto": st.training.auto,
-            "unbiased_fraction": st.training.unbiased_fraction, "optical_depth_median": self.optical_depth,
+            "unbiased_fraction": st.training.unbiased_fraction, "carry_frames": st.training.carry_frames,
+            "optical_depth_median": self.optical_depth,
             "medium_pixels": self.medium_pixels,
             "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,
             "compiled_graphs_in_process": compiled_graphs() if self.tracer.backend == "compiled" else None,
             "cache_parameters": self.cache.n_parameters if hasattr(self.cache, "n_parameters") else None,
             "cache_steps": getattr(self.cache, "n_steps", None),
             "cache_skipped_steps": getattr(self.cache, "n_skipped_steps", None),
+            "training_backend": getattr(self.cache, "training_backend", None),
+            "training_backend_reason": getattr(self.cache, "training_backend_reason", None),
             "nonfinite_predictions": int(sum(h.get("nonfinite_predictions", []))),
             "frames_done": done, "interrupted": signal.Signals(self.interrupted).name if self.interrupted else None,
             "checkpoint": str(self.checkpoint_path) if self.checkpoint_path else None,

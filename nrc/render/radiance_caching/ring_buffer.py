@@ -45,6 +45,7 @@ class RingBuffer:
         self.capacity = capacity
         self.device = torch.device(device)
         self._data = torch.zeros(capacity, 9, dtype=torch.float32, device=self.device)
+        self._started = torch.full((capacity,), -1, dtype=torch.long, device=self.device)  # each record's frame
         # Slots [0, size) hold records (size grows to capacity, then stays); head is the next slot to
         # write, which is the oldest record once full.
         self._head = 0
@@ -57,12 +58,19 @@ class RingBuffer:
         """The records held, oldest first."""
         return TrainingRecords._unpack(self._data[self._ring_slots()])
 
-    def push(self, records: TrainingRecords, valid: Tensor) -> None:
-        """Store the records where the bool ``valid`` ``(N,)`` is True, in order, overwriting the oldest."""
+    def started(self) -> Tensor:
+        """``(len,)`` the frame each held record's training path started in (-1: unknown), oldest first."""
+        return self._started[self._ring_slots()]
+
+    def push(self, records: TrainingRecords, valid: Tensor, started: int | Tensor = -1) -> None:
+        """Store the records where the bool ``valid`` ``(N,)`` is True, in order, overwriting the oldest; each is
+        marked with the frame its training path started in (``started``: one for all or ``(N,)``; -1 unknown)."""
         new = records._packed()[valid][-self.capacity:]
         k = new.shape[0]
         slots = (torch.arange(k, device=self.device) + self._head) % self.capacity
         self._data.index_copy_(0, slots, new.to(self._data))
+        frames = torch.as_tensor(started, dtype=torch.long, device=self.device).expand(valid.shape[0])
+        self._started.index_copy_(0, slots, frames[valid][-self.capacity:])
         self._head = (self._head + k) % self.capacity
         self._size = min(self._size + k, self.capacity)
 
@@ -82,7 +90,8 @@ class RingBuffer:
     def state_dict(self) -> dict[str, Any]:
         """The stored records in their slots, and the write position, for checkpoints: :meth:`fill` draws slots, so an
         exact resume needs the layout, not just the records (a full ring's oldest record is not in slot 0)."""
-        return {"capacity": self.capacity, "records": self._data[:self._size].cpu(), "head": self._head}
+        return {"capacity": self.capacity, "records": self._data[:self._size].cpu(), "head": self._head,
+                "started": self._started[:self._size].cpu()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore from :meth:`state_dict` of a buffer with the same capacity."""
@@ -91,6 +100,9 @@ class RingBuffer:
         records = state["records"].to(self._data)
         self._data.zero_()
         self._data[:records.shape[0]] = records
+        self._started.fill_(-1)
+        if "started" in state:  # older checkpoints do not mark the records
+            self._started[:records.shape[0]] = state["started"].to(self._started)
         self._size = records.shape[0]
         self._head = int(state.get("head", self._size % self.capacity))  # older checkpoints: oldest first
 

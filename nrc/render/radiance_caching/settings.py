@@ -31,8 +31,10 @@ class TrainingSettings:
     unbiased_fraction: float | None  # probability that a training path never terminates into the cache; None: auto
     unbiased_max_vertices: int  # ... until this vertex after all (0: never; it runs to max_scatter)
     ring_buffer: int | None  # records kept from earlier frames; None: auto (RING_FRAMES frames of records, capped)
+    carry_frames: int | None = 0  # later frames a training path still going at its frame's end may go on in (0: the
+    # frame waits for it); None: auto (auto_training_regime)
     query_weights: str = "raw"  # cache weights of the training paths' terminal queries: ema | raw
-    paths_per_pixel: float = 3.5  # auto: training paths per pixel that sees the medium
+    paths_per_pixel: float = 1.0  # auto: training paths per pixel that sees the medium
     min_paths: int = 4096  # auto: the floor
     max_paths: int = 40960  # auto: the cap
 
@@ -78,9 +80,9 @@ class NRCSettings:
 
     @property
     def inline_shadows(self) -> bool:
-        """Shadow rays are always queued for the estimator (NRC's short frames wait on the longest chain of step
-        calls; :func:`nrc.render.wavefront.build_core`)."""
-        return False
+        """Compiled, with ratio tracking: shadow rays inside the step, alongside the free flight
+        (:func:`nrc.render.wavefront.build_core`)."""
+        return True
 
     @classmethod
     def from_config(cls, renderer: Any) -> NRCSettings:
@@ -108,6 +110,7 @@ class NRCSettings:
                 unbiased_fraction=_unbiased_fraction(tr),
                 unbiased_max_vertices=tr.get_int("unbiased_max_vertices", lo=0),
                 ring_buffer=_ring_buffer(tr),
+                carry_frames=_carry_frames(tr),
                 query_weights=tr.get_choice("query_weights", ["raw", "ema"]),
                 paths_per_pixel=tr.get_float("paths_per_pixel", lo=0.0, lo_open=True),
                 min_paths=tr.get_int("min_paths", lo=1),
@@ -157,26 +160,42 @@ def _unbiased_fraction(tr: ConfigReader) -> float | None:
     return tr.get_float("unbiased_fraction", lo=0.0, hi=1.0)
 
 
+def _carry_frames(tr: ConfigReader) -> int | None:
+    """``training.carry_frames``: ``auto`` (None: :func:`auto_training_regime`) or an integer >= 0."""
+    if tr.get_raw("carry_frames", None) == "auto":
+        return None
+    return tr.get_int("carry_frames", lo=0)
+
+
 THICK_OPTICAL_DEPTH = 40.0  # auto: a scene whose median optical depth reaches this is thick (docs/scenes.md)
 UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/nrc_measurements.md)
+CARRY_FRAMES = {"moderate": 0, "thick": 4}  # auto's two values (docs/nrc.md, "Current defaults and why")
 OPTICAL_DEPTH_PIXELS = 64 * 36  # auto: the optical depth is taken over a camera of about this many pixels
 
 
-def auto_unbiased_fraction(scene: Any, animate: str = "none") -> tuple[float, float]:
-    """``(fraction, median optical depth)``: the unbiased training paths' share chosen by the scene's median
-    optical depth over its camera rays (:func:`nrc.volume.optical_depth.scene_optical_depth`, on the same camera
-    at about :data:`OPTICAL_DEPTH_PIXELS` pixels): :data:`UNBIASED_FRACTION` ``thick`` from
-    :data:`THICK_OPTICAL_DEPTH` on with a static camera and light (``animate`` ``none``), else ``moderate``. In a
+def auto_training_regime(scene: Any, animate: str = "none") -> tuple[str, float]:
+    """``(regime, median optical depth)``: ``thick`` where the scene's median optical depth over its camera rays
+    (:func:`nrc.volume.optical_depth.scene_optical_depth`, on the same camera at about
+    :data:`OPTICAL_DEPTH_PIXELS` pixels) reaches :data:`THICK_OPTICAL_DEPTH` and the camera and light are static
+    (``animate`` ``none``), else ``moderate``. The ``auto`` settings follow it: :data:`UNBIASED_FRACTION` (in a
     thick cloud self-training passes most of a cached value on to the targets; more fully traced paths bring the
     image mean up sooner there, and cost accuracy on moderate clouds and under a moving light, where the cache
-    overshoots (measured in docs/nrc_measurements.md, "Unbiased training paths" and "A whole animation")."""
+    overshoots: docs/nrc_measurements.md, "Unbiased training paths" and "A whole animation") and
+    :data:`CARRY_FRAMES` (a thick cloud's frame no longer waits for its long training paths; in a moderate one the
+    carried quarter of unbiased paths held the image darker: docs/nrc.md, "Current defaults and why")."""
     from nrc.volume.optical_depth import scene_optical_depth
 
     cam = scene.camera
     k = max(1.0, math.sqrt(cam.num_pixels / OPTICAL_DEPTH_PIXELS))
     small = replace(cam, width=max(1, round(cam.width / k)), height=max(1, round(cam.height / k)))
     tau = scene_optical_depth(replace(scene, camera=small)).median
-    return UNBIASED_FRACTION["thick" if tau >= THICK_OPTICAL_DEPTH and animate == "none" else "moderate"], tau
+    return ("thick" if tau >= THICK_OPTICAL_DEPTH and animate == "none" else "moderate"), tau
+
+
+def auto_unbiased_fraction(scene: Any, animate: str = "none") -> tuple[float, float]:
+    """``(fraction, median optical depth)``: :data:`UNBIASED_FRACTION` of :func:`auto_training_regime`."""
+    regime, tau = auto_training_regime(scene, animate)
+    return UNBIASED_FRACTION[regime], tau
 
 
 RING_FRAMES = 4  # ring_buffer: auto keeps this many frames of records ...

@@ -74,12 +74,18 @@ class NRCVertex(VertexProgram):
         self.rule, self.V, self.cache_target = st.termination.rule, int(st.training.records_per_path), st.cache_target
         self.debias = bool(st.debias.enabled)
         self.termination, self.unbiased_cap = st.termination, int(st.training.unbiased_max_vertices)
-        self.rows = 1 + self.V
+        # accumulator rows of a slot's L: 0 (the pixel, a training path's discard row, or with debias a continued
+        # path's suffix row 1), the V records, and with cache_target=indirect the V records' own direct light
+        self.rows = 1 + self.V + (self.V if self.cache_target == "indirect" else 0)
         self.lanes = 1 + self.debias  # the termination draw, the debias draw
         self.param_names = ("min_vertices", "p_continue", "spread_c", "unbiased_cap") + (
             ("debias_q",) if self.debias else ())
         # a continued path under cache_target=indirect keeps the terminal vertex's estimate (light sampling alone)
         self.indirect_debias = self.debias and self.cache_target == "indirect"
+
+    @property
+    def fused_tail(self) -> bool:  # the collector writes the training records at the vertex passes
+        return False
 
     @property
     def own_skips_env(self) -> bool:  # a continued path's next segment does not count the sky (indirect debias)
@@ -142,10 +148,19 @@ class NRCVertex(VertexProgram):
             if not self.indirect_debias:
                 nee_beta = tuple(torch.where(cont, b / q, b) for b in beta_s)
             beta = tuple(torch.where(cont, b / q, b) for b in beta_s)
+        # the row of the vertex's shadow ray: the record's direct-light row where a record is written under
+        # cache_target=indirect, the pixel for a continued vertex's own estimate (indirect debias), else the row of
+        # the segment the vertex starts
+        n_new = torch.where(go, n_s, s.n)
+        shadow_row = accumulator_row(s.rec_base, n_new, V, s.never if self.debias else None)
+        if self.cache_target == "indirect":
+            shadow_row = torch.where(s.rec >= 0, V + n_s, shadow_row)
+            if self.indirect_debias:
+                shadow_row = torch.where(cont, torch.zeros_like(shadow_row), shadow_row)
         # a continued path's first segment under cache_target=indirect does not count the environment: its
         # vertex's direct light came from light sampling alone
         return Decision(go=go, nee=nee, mis=mis, nee_beta=nee_beta, beta=beta,
-                        skip_env=cont if self.indirect_debias else None)
+                        skip_env=cont if self.indirect_debias else None, shadow_row=shadow_row)
 
 
 @dataclass
@@ -155,10 +170,10 @@ class NRCCollector(Collector):
     n_pixels: int
     n_render: int
     V: int
-    rec_x: Tensor  # (N_train * V, 3) training-record positions, written at recorded vertices
+    rec_x: Tensor  # (pool paths * V, 3) training-record positions, written at recorded vertices (TrainingPool)
     rec_d: Tensor
     rec_valid: Tensor
-    scattered: Tensor  # (N_train,) bool
+    scattered: Tensor  # (pool paths,) bool
     # cache_target=indirect: accumulator row of record 0's direct light (next-event estimate and MIS-weighted
     # environment of a recorded vertex go to direct_base + record instead of the record's row); None: full
     direct_base: int | None = None
@@ -172,9 +187,16 @@ class NRCCollector(Collector):
     suffix_base: int | None = None
     continued: dict[str, list[Tensor]] = field(default_factory=lambda: {"pid": [], "beta": []})
     watchers: tuple = ()  # objects with record(VertexEvent) (the reuse pass's vertex record)
+    finished: Tensor | None = None  # (pool paths,) bool: set for the training paths harvested (their records complete)
 
     def __post_init__(self) -> None:
         self.watchers = tuple(w for w in self.watchers if w is not None)
+
+    @property
+    def needs_vertex_passes(self) -> bool:
+        """The training records' positions and directions are written at the vertex passes (and, with
+        ``renderer.debias``, the continued paths' control-variate queries)."""
+        return True
 
     @property
     def indirect(self) -> bool:
@@ -185,9 +207,13 @@ class NRCCollector(Collector):
     # ------------------------------------------------------------------ rows
     def rows(self, ly: Any, I: Tensor, j: Tensor | int) -> Tensor:
         dest = I[ly.i("dest")]
-        j = torch.as_tensor(j, device=dest.device).expand_as(dest)
+        j = torch.as_tensor(j, device=dest.device)
+        if j.dim() < 2:  # per slot or one for all; (R, 1): every row of every slot, (R, K)
+            j = j.expand_as(dest)
         rec_base = I[ly.i("rec_base")]
         rec = self.n_pixels + rec_base + j - 1
+        if self.direct_base is not None:  # rows V+1..2V of a slot: its records' direct light
+            rec = torch.where(j > self.V, self.direct_base + rec_base + j - self.V - 1, rec)
         rows = torch.where((j > 0) & (rec_base >= 0), rec, dest)
         if self.suffix_base is not None:  # a continued render path's row 1: its sample's suffix row
             suffix = (j == 1) & (rec_base < 0) & (I[ly.i("never")] == CONTINUED)
@@ -196,7 +222,7 @@ class NRCCollector(Collector):
 
     def current_rows(self, ly: Any, I: Tensor) -> Tensor:
         never = I[ly.i("never")] if self.suffix_base is not None else None
-        return self.rows(ly, I, accumulator_row(I[ly.i("rec_base")], I[ly.i("n")], ly.rows - 1, never))
+        return self.rows(ly, I, accumulator_row(I[ly.i("rec_base")], I[ly.i("n")], self.V, never))
 
     def direct_rows(self, ly: Any, I: Tensor) -> Tensor:
         """With ``cache_target=indirect`` the direct light of a recorded vertex (``rec >= 0``: set at the vertex,
@@ -229,9 +255,12 @@ class NRCCollector(Collector):
             self.queries["pid"].append(Iq[ly.i("pid")])
             if self.suffix_base is not None:
                 self.queries["cont"].append(torch.zeros(len(q), dtype=torch.bool, device=q.device))
-        train = (I[ly.i("rec_base")] >= 0) & ((I[ly.i("n")] > 0) | (flight == QUERY))
+        is_train = I[ly.i("rec_base")] >= 0
+        train = is_train & ((I[ly.i("n")] > 0) | (flight == QUERY))
         if bool(train.any()):
             self.scattered[I[ly.i("pid")][train] - self.n_render] = True
+        if self.finished is not None:
+            self.finished[I[ly.i("pid")][is_train] - self.n_render] = True
 
     def vertex_pass(self, ly: Any, F_in: Tensor, I_in: Tensor, F_out: Tensor, I_out: Tensor) -> Tensor | None:
         """Returns the slots continued past their cache termination at this vertex (``renderer.debias``)."""

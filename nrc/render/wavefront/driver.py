@@ -43,6 +43,10 @@ SCATTER_EVERY = 2
 # once the queue is empty, compact when fewer than this fraction of the slots are live (every step's cost grows
 # with the slot count; NRC frame at 160x90, trace: 0.5 -> 0.26 s compiled / 0.76 s eager, 0.9 -> 0.25 / 0.67 s)
 COMPACT_BELOW = 0.9
+# once the queue is empty and at most this many slots are live, the tail runs fused calls (Machine.advance: a
+# tracking step and the vertices it reaches, one thread), TAIL_CALLS between harvests (docs/benchmarks.md)
+TAIL_SLOTS = 256
+TAIL_CALLS = 16
 
 
 class BatchQueue:
@@ -161,9 +165,12 @@ class Wavefront:
     def _harvest(self, F: Tensor, I: Tensor, done: Tensor, acc: Tensor) -> None:
         ly, col = self.layout, self.collector
         Fd, Id = F[:, done], I[:, done]
-        L = Fd[ly.f("L")]
-        for j in range(ly.rows):
-            acc.index_add_(0, col.rows(ly, Id, j), L[3 * j:3 * j + 3].T)
+        L = Fd[ly.f("L")]  # (3 R, K)
+        if ly.rows == 1:
+            acc.index_add_(0, col.rows(ly, Id, 0), L.T)
+        else:  # every row of every slot in one add
+            rows = col.rows(ly, Id, torch.arange(ly.rows, device=L.device)[:, None])  # (R, K)
+            acc.index_add_(0, rows.reshape(-1), L.reshape(ly.rows, 3, -1).transpose(1, 2).reshape(-1, 3))
         flight = Id[ly.i("flight")]
         if self.lights.has_env:
             e = (flight == ESCAPED).nonzero().squeeze(1)
@@ -177,23 +184,30 @@ class Wavefront:
                     w = torch.where(Ie[ly.i("skip_env")] != 0, torch.zeros_like(w), w)
                 # the MIS-weighted environment is the direct light of the vertex the segment left
                 acc.index_add_(0, col.direct_rows(ly, Ie), Fd[ly.f("beta")][:, e].T * self.lights.env_radiance(d) * w[:, None])
-        c = self.counts
-        c["tracking_steps"] += int(Id[ly.i("cnt")].sum())
-        c["shadow_steps"] += int(Id[ly.i("n_shadow_steps")].sum())
+        self._count(Id, 1)
         col.harvest(ly, Fd, Id, flight)
+
+    def _count(self, I: Tensor, sign: int) -> None:
+        """Add (``sign`` 1) or take back (-1) the work counters that slots ``I`` hold: tracking and shadow-ray
+        steps, scattering events (vertices that went on, and a path's last one that ended it as a query) and the
+        shadow rays traced in the slot. Read at harvest, and for carried slots at the end and start of a run, so a
+        run counts the work done in it."""
+        ly = self.layout
+        sums = torch.stack([I[ly.i("cnt")].sum(), I[ly.i("n_shadow_steps")].sum(), I[ly.i("n")].sum()
+                            + (I[ly.i("flight")] == QUERY).sum(), I[ly.i("n_shadow")].sum()]).tolist()
+        for name, v in zip(("tracking_steps", "shadow_steps", "scatter_events", "shadow_rays"), sums):
+            self.counts[name] += sign * int(v)
 
     def _vertex_pass(self, F: Tensor, I: Tensor, acc: Tensor) -> None:
         ly, col = self.layout, self.collector
-        sc = (I[ly.i("flight")] == VERTEX).nonzero().squeeze(1)
+        # a vertex waits for the shadow ray of the one before it (which the free flight overtook)
+        sc = ((I[ly.i("flight")] == VERTEX) & (I[ly.i("shadow")] == 0)).nonzero().squeeze(1)
         if not len(sc):
             return
-        self.counts["scatter_events"] += len(sc)
         Fi, Ii = F.index_select(1, sc), I.index_select(1, sc)
         Fs, Is = self.machine.vertex(Fi, Ii, self.inputs)
         info = col.vertex_pass(ly, Fi, Ii, Fs, Is)
-        if self.shadow is None:
-            self.counts["shadow_rays"] += int((Is[ly.i("shadow")] != 0).sum())
-        else:
+        if self.shadow is not None:
             qd = (Is[ly.i("shadow")] == 2).nonzero().squeeze(1)
             if len(qd):
                 Iq = Is[:, qd]
@@ -206,37 +220,75 @@ class Wavefront:
         F.index_copy_(1, sc, Fs)
         I.index_copy_(1, sc, Is)
 
+    @property
+    def fusable(self) -> bool:
+        """The tail runs fused calls (:meth:`Machine.advance`): the step traces its shadow rays, no queue waits for
+        a vertex pass and the collector needs none (:attr:`Collector.needs_vertex_passes`)."""
+        return (self.machine.fusable and self.shadow is None and self.equiangular is None
+                and not self.collector.needs_vertex_passes)
+
+    def _free(self, I: Tensor) -> Tensor:
+        """``(S,)`` bool: slots without a path in flight (done, escaped, a query) and no pending shadow ray."""
+        fl = I[self.layout.i("flight")]
+        return ((fl == DONE) | (fl >= QUERY)) & (I[self.layout.i("shadow")] == 0)
+
+    def _retire(self, F: Tensor, I: Tensor, idx: Tensor, acc: Tensor, on_done: Callable[[int], None] | None) -> None:
+        """Harvest the occupied slots among the free slots ``idx`` and mark them all idle."""
+        ly = self.layout
+        done = idx[I[ly.i("occupied"), idx] != 0]
+        if len(done):
+            self._harvest(F, I, done, acc)
+            if on_done is not None:
+                on_done(len(done))
+        I[ly.i("occupied"), idx] = 0
+        I[ly.i("flight"), idx] = DONE
+
     def run(self, total: int, new_paths: Callable[[Tensor], tuple[Tensor, Tensor]], acc: Tensor,
-            on_done: Callable[[int], None] | None = None) -> None:
-        """Trace paths ``0 .. total-1`` (``new_paths(ids) -> (F, I)`` packs fresh ones) into ``acc``."""
+            on_done: Callable[[int], None] | None = None, carry: tuple[Tensor, Tensor] | None = None,
+            keep: Callable[[Tensor], Tensor] | None = None) -> tuple[Tensor, Tensor] | None:
+        """Trace paths ``0 .. total-1`` (``new_paths(ids) -> (F, I)`` packs fresh ones) into ``acc``.
+
+        ``carry``: slots of an earlier run that go on here (their rows of ``acc`` must still be valid). ``keep``:
+        ``keep(I) -> (S,)`` bool marks the slots that may be left in flight: once every path has started and every
+        live slot is marked, the run stops and returns those slots (``(F, I)``, to be carried into a later run);
+        without ``keep`` (or when nothing is left) it returns ``None``. The queues are traced before it returns.
+        """
+        out = self._run(total, new_paths, acc, on_done, carry, keep)
+        self._finish(acc)
+        return out
+
+    def _run(self, total: int, new_paths: Callable[[Tensor], tuple[Tensor, Tensor]], acc: Tensor,
+             on_done: Callable[[int], None] | None, carry: tuple[Tensor, Tensor] | None,
+             keep: Callable[[Tensor], Tensor] | None) -> tuple[Tensor, Tensor] | None:
         ly, dev, c, tm = self.layout, acc.device, self.counts, self.timers
-        S = max(min(self.slots, total), 2)
+        n_carry = 0 if carry is None else carry[0].shape[1]
+        S = max(min(self.slots, total + n_carry), 2)
         F, I = ly.zeros(S, dev)
+        if n_carry:  # the carried slots first (the working set grows to hold them if it must)
+            Fc, Ic = carry
+            self._count(Ic, -1)  # their work before this run was counted by the run that carried them out
+            if n_carry > S:
+                F, I = ly.zeros(n_carry, dev)
+            F[:, :n_carry], I[:, :n_carry] = Fc, Ic
         next_id, calls = 0, 0
-        i_flight, i_shadow, i_occ = ly.i("flight"), ly.i("shadow"), ly.i("occupied")
+        fusable = self.fusable
         while True:
             if calls % REFILL_EVERY == 0:
                 t_rf = time.perf_counter()
-                fl = I[i_flight]
-                free = ((fl == DONE) | (fl >= QUERY)) & (I[i_shadow] == 0)
+                free = self._free(I)
                 S = I.shape[1]
                 # Once the queue is empty, harvest only to compact or to finish: the tail's calls are short, and
                 # a harvest (a few dozen small ops) costs more than a step there.
                 due = True
                 if next_id >= total:
                     n_free = int(free.sum())
-                    due = n_free == S or (S - n_free < COMPACT_BELOW * S and S > MIN_SLOTS)
+                    due = (n_free == S or (S - n_free < COMPACT_BELOW * S and S > MIN_SLOTS)
+                           or (fusable and S - n_free <= TAIL_SLOTS) or keep is not None)
                 if due:
                     idx = free.nonzero().squeeze(1)
                     k = 0
                     if len(idx):
-                        done = idx[I[i_occ, idx] != 0]
-                        if len(done):
-                            self._harvest(F, I, done, acc)
-                            if on_done is not None:
-                                on_done(len(done))
-                        I[i_occ, idx] = 0
-                        I[i_flight, idx] = DONE
+                        self._retire(F, I, idx, acc, on_done)
                         k = min(len(idx), total - next_id)
                         if k:
                             slots = idx[:k]
@@ -249,14 +301,16 @@ class Wavefront:
                     live = S - len(idx) + k
                     if live == 0:
                         tm["refill"] += time.perf_counter() - t_rf
-                        break
-                    if next_id >= total and live < COMPACT_BELOW * S and S > MIN_SLOTS:
-                        fl = I[i_flight]
-                        free = ((fl == DONE) | (fl >= QUERY)) & (I[i_shadow] == 0)
-                        keep = (~free).nonzero().squeeze(1)
-                        if len(keep) < MIN_SLOTS:  # pad with idle slots
-                            keep = torch.cat([keep, free.nonzero().squeeze(1)[: MIN_SLOTS - len(keep)]])
-                        F, I = F[:, keep].contiguous(), I[:, keep].contiguous()
+                        return None
+                    if next_id >= total:
+                        if keep is not None and self._only_kept(I, keep):
+                            tm["refill"] += time.perf_counter() - t_rf
+                            return self._carry_out(F, I)
+                        if fusable and live <= TAIL_SLOTS:
+                            tm["refill"] += time.perf_counter() - t_rf
+                            return self._tail(F, I, acc, on_done, keep)
+                        if live < COMPACT_BELOW * S and S > MIN_SLOTS:
+                            F, I = self._compact(F, I, MIN_SLOTS)
                 tm["refill"] += time.perf_counter() - t_rf
             t_st = time.perf_counter()
             F, I = self.machine.track(F, I, self.inputs)
@@ -269,6 +323,64 @@ class Wavefront:
                 continue
             self._vertex_pass(F, I, acc)
             tm["scatter"] += time.perf_counter() - t_sc
+
+    def _only_kept(self, I: Tensor, keep: Callable[[Tensor], Tensor]) -> bool:
+        """Every slot with a path in flight is one ``keep`` lets the run leave behind."""
+        return not bool((~self._free(I) & ~keep(I)).any())
+
+    def _carry_out(self, F: Tensor, I: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The live slots, to go on in a later run (their work so far counted in this one)."""
+        live = (~self._free(I)).nonzero().squeeze(1)
+        if not len(live):
+            return None
+        Fc, Ic = F[:, live].contiguous(), I[:, live].contiguous()
+        self._count(Ic, 1)
+        return Fc, Ic
+
+    def _compact(self, F: Tensor, I: Tensor, floor: int) -> tuple[Tensor, Tensor]:
+        """The live slots, padded with idle ones to at least ``floor`` (dynamic-shape kernels specialise 0 and 1)."""
+        free = self._free(I)
+        keep = (~free).nonzero().squeeze(1)
+        if len(keep) < floor:  # pad with idle slots
+            keep = torch.cat([keep, free.nonzero().squeeze(1)[: floor - len(keep)]])
+        return F[:, keep].contiguous(), I[:, keep].contiguous()
+
+    def _tail(self, F: Tensor, I: Tensor, acc: Tensor, on_done: Callable[[int], None] | None,
+              keep: Callable[[Tensor], Tensor] | None) -> tuple[Tensor, Tensor] | None:
+        """The last live slots (the queue is empty, at most :data:`TAIL_SLOTS` live): runs of
+        :data:`TAIL_CALLS` fused calls (a tracking step and the vertices it reaches, :meth:`Machine.advance`), then
+        a harvest and, below 3/4 live, a compaction. A path takes the same steps with the same draws as in the
+        driver's main loop; only when its slot is harvested differs."""
+        c, tm = self.counts, self.timers
+        F, I = self._compact(F, I, 2)
+        while True:
+            t_st = time.perf_counter()
+            for _ in range(TAIL_CALLS):
+                F, I = self.machine.advance(F, I, self.inputs)
+            S = I.shape[1]
+            c["iterations"] += TAIL_CALLS
+            c["tail_calls"] = c.get("tail_calls", 0) + TAIL_CALLS
+            c["slot_steps"] += S * TAIL_CALLS
+            t_rf = time.perf_counter()
+            tm["tail"] = tm.get("tail", 0.0) + t_rf - t_st
+            free = self._free(I)
+            idx = free.nonzero().squeeze(1)
+            if len(idx):
+                self._retire(F, I, idx, acc, on_done)
+            live = S - len(idx)
+            if live == 0:
+                tm["refill"] += time.perf_counter() - t_rf
+                return None
+            if keep is not None and self._only_kept(I, keep):
+                tm["refill"] += time.perf_counter() - t_rf
+                return self._carry_out(F, I)
+            if live < 0.75 * S and S > 2:
+                F, I = self._compact(F, I, 2)
+            tm["refill"] += time.perf_counter() - t_rf
+
+    def _finish(self, acc: Tensor) -> None:
+        """Trace what the queues still hold and add their counters."""
+        c, tm = self.counts, self.timers
         if self.shadow is not None:
             self.shadow.flush(acc)
             c["shadow_rays"] += self.shadow.done

@@ -46,6 +46,9 @@ MIN_SLOTS = 64  # compaction never goes below this (dynamic-shape kernels specia
 # avoid that, but its kernels were not reused from the cache at all in torch 2.13.)
 TRACK_OPTIONS = {"assert_indirect_indexing": False}
 VERTEX_OPTIONS = {"assert_indirect_indexing": False, "cpp.vec_isa_ok": False}
+# The tail's fused step (Transport.advance) runs on a few hundred slots, where a call costs its fixed overhead: one
+# thread (no OpenMP region; two threads' barriers between its ~40 loops cost about half of a small call), scalar code.
+ADVANCE_OPTIONS = {"assert_indirect_indexing": False, "cpp.vec_isa_ok": False, "cpp.threads": 1}
 RECOMPILE_LIMIT = 64  # structures per process before Dynamo would fall back to eager (default 8)
 # Where the step is compiled ahead of time into a package (torch.export + AOTInductor) that a later process loads
 # in milliseconds without Dynamo (torch.compile re-traces both functions on every start, ~3.4 s, before its cache
@@ -104,7 +107,7 @@ def is_cached(step: Transport, device: torch.device, steps_per_call: int = 1) ->
 
 
 def packages_cached(step: Transport, steps_per_call: int, device: torch.device) -> bool:
-    """Both AOT packages of this structure are in the cache: a compile is a load of milliseconds."""
+    """All AOT packages of this structure are in the cache: a compile is a load of milliseconds."""
     paths = aot_packages(step, steps_per_call, device)
     return paths is not None and all(p.is_file() for p in paths)
 
@@ -139,18 +142,26 @@ def _package_sources() -> str:
                         for f in ([root / d] if d.endswith(".py") else sorted((root / d).rglob("*.py")))])
 
 
-def aot_packages(step: Transport, steps_per_call: int, device: torch.device) -> tuple[Path, Path] | None:
-    """The ``(track, vertex)`` package files of ``step``'s structure in the compile cache, or None where the step
-    is compiled by torch.compile instead (a device not in :data:`AOT_DEVICES`, a scripted random-number function,
-    a lat-long sampler). Keyed by the structure, ``steps_per_call``, the device type, the torch version, the CPU
-    thread count (the kernels are specialised on it), the Inductor options and the package's sources."""
+def aot_packages(step: Transport, steps_per_call: int, device: torch.device) -> tuple[Path, ...] | None:
+    """The two package files of ``step``'s structure in the compile cache (:func:`package_names`), or None where the
+    step is compiled by torch.compile instead (a device not in :data:`AOT_DEVICES`, a scripted random-number function, a lat-long
+    sampler). Keyed by the structure, ``steps_per_call``, the device type, the torch version, the CPU thread count
+    (the kernels are specialised on it), the Inductor options and the package's sources."""
     if device.type not in AOT_DEVICES or step.uniforms is not counter_uniforms or step.sampler is not None:
         return None
     threads = torch.get_num_threads() if device.type == "cpu" else 0
     text = repr((step.structure, steps_per_call, device.type, torch.__version__, threads, TRACK_OPTIONS,
-                 VERTEX_OPTIONS, _package_sources()))
+                 VERTEX_OPTIONS, ADVANCE_OPTIONS, _package_sources()))
     stem = inductor_cache_dir() / "nrc-aot" / hashlib.sha1(text.encode()).hexdigest()[:20]
-    return stem.with_name(stem.name + "-track.pt2"), stem.with_name(stem.name + "-vertex.pt2")
+    return tuple(stem.with_name(f"{stem.name}-{name}.pt2") for name in package_names(step))
+
+
+def package_names(step: Transport) -> tuple[str, str]:
+    """The step functions a structure is compiled into: ``track`` and ``vertex``, or ``track`` and ``advance``
+    where it has the tail's fused step (:attr:`Transport.fusable`): ``advance`` then serves the vertex passes too
+    (on slots waiting at a vertex its tracking step changes nothing, so it is the vertex), one package less to
+    build."""
+    return ("track", "advance") if step.fusable else ("track", "vertex")
 
 
 class _Package:
@@ -269,7 +280,8 @@ class Machine:
     """The step functions of one structure, compiled or eager (the identical code).
 
     ``track(F, I, inputs)`` runs ``steps_per_call`` tracking steps; ``vertex(F, I, inputs)`` the vertex of the
-    given slots (sizes below 2 run eagerly: dynamic shapes specialise them).
+    given slots; ``advance(F, I, inputs)`` (where :attr:`fusable`) one tracking step and the vertices it reaches,
+    the driver's tail. A single slot is padded with an idle one (dynamic shapes specialise sizes 0 and 1).
     """
 
     def __init__(self, step: Transport, steps_per_call: int, compile: bool, device: torch.device) -> None:
@@ -280,8 +292,9 @@ class Machine:
                 F, I = step.track(F, I, P, density, majorant)
             return F, I
 
-        self._track_eager, self._vertex_eager = track, step.vertex
-        self._track, self._vertex = track, step.vertex  # compiled: replaced here (JIT) or by warm_up (AOT)
+        self._track_eager, self._vertex_eager, self._advance_eager = track, step.vertex, step.advance
+        # compiled: replaced here (JIT) or by warm_up (AOT)
+        self._track, self._vertex, self._advance = track, step.vertex, step.advance
         # the AOT packages of this structure (loaded or built by warm_up), or None: torch.compile
         self.packages = aot_packages(step, steps_per_call, device) if compile else None
         if compile and self.packages is None:
@@ -293,16 +306,26 @@ class Machine:
         """The step functions through torch.compile (lazy: the first calls compile or load them)."""
         inductor_cache_dir()
         torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
-        self._track, self._vertex = _compile(self._track_eager, TRACK_OPTIONS), _compile(self._vertex_eager,
-                                                                                        VERTEX_OPTIONS)
+        self._track = _compile(self._track_eager, TRACK_OPTIONS)
+        if not self.fusable:
+            self._vertex = _compile(self._vertex_eager, VERTEX_OPTIONS)
+        if self.fusable:  # the fused step serves the vertex passes too (package_names)
+            self._advance = self._vertex = _compile(self._advance_eager, ADVANCE_OPTIONS)
+
+    @property
+    def fusable(self) -> bool:
+        """The machine has the tail's fused step (:meth:`advance`): the structure traces its shadow rays inline."""
+        return self.step.fusable
 
     def _load_packages(self, track_args: tuple[Tensor, ...], vertex_args: tuple[Tensor, ...]) -> None:
         """The step functions from their AOT packages: loaded, or built first (from the example arguments) when
         absent or unreadable; torch.compile instead when a step cannot be exported."""
         global _aot_built
         loaded = []
-        for path, fn, options, args in zip(self.packages, (self._track_eager, self._vertex_eager),
-                                           (TRACK_OPTIONS, VERTEX_OPTIONS), (track_args, vertex_args)):
+        fns = {"track": (self._track_eager, TRACK_OPTIONS, track_args),
+               "vertex": (self._vertex_eager, VERTEX_OPTIONS, vertex_args),
+               "advance": (self._advance_eager, ADVANCE_OPTIONS, vertex_args)}
+        for path, (fn, options, args) in zip(self.packages, (fns[n] for n in package_names(self.step))):
             if path.is_file():
                 try:
                     loaded.append(_Package(path, self.device))
@@ -322,14 +345,28 @@ class Machine:
             _aot_built += 1
             loaded.append(_Package(path, self.device))
         self._track, self._vertex = loaded
+        if self.fusable:  # the fused step serves the vertex passes too (package_names)
+            self._advance = self._vertex
+
+    @staticmethod
+    def _call(fn: Any, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
+        if F.shape[1] >= 2:
+            return fn(F, I, inputs.P, inputs.density, inputs.majorant)
+        # one slot: padded with an idle one (the compiled functions take sizes from 2; the idle slot's result,
+        # whatever it is, is dropped)
+        Fo, Io = fn(torch.cat([F, torch.zeros_like(F)], 1), torch.cat([I, torch.zeros_like(I)], 1), inputs.P,
+                    inputs.density, inputs.majorant)
+        return Fo[:, :1], Io[:, :1]
 
     def track(self, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
-        fn = self._track if F.shape[1] >= 2 else self._track_eager
-        return fn(F, I, inputs.P, inputs.density, inputs.majorant)
+        return self._call(self._track, F, I, inputs)
 
     def vertex(self, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
-        fn = self._vertex if F.shape[1] >= 2 else self._vertex_eager
-        return fn(F, I, inputs.P, inputs.density, inputs.majorant)
+        return self._call(self._vertex, F, I, inputs)
+
+    def advance(self, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
+        """One tracking step and the vertices it reaches (:meth:`Transport.advance`; :attr:`fusable` only)."""
+        return self._call(self._advance, F, I, inputs)
 
     def warm_up(self, inputs: SceneInputs, slots: int) -> float:
         """Compile (or load from the cache) by calls on idle working sets (inductor picks its parallelisation
@@ -367,6 +404,8 @@ class Machine:
             with _InterruptWatch():  # torch.compile's first calls (the JIT path) trace as well
                 self.track(F, I, inputs)
                 self.vertex(Fv, Iv, inputs)
+                if self.fusable:
+                    self.advance(Fv, Iv, inputs)
         finally:
             done.set()
         self.startup_s = time.perf_counter() - t0

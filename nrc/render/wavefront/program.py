@@ -52,6 +52,10 @@ class Decision:
     """The next segment's escape does not count the environment (its direct light was estimated otherwise);
     ``None``: every escape counts it. Kept in the state field ``skip_env``, which exists where the program
     declares :attr:`VertexProgram.skips_env`."""
+    shadow_row: Tensor | None = None
+    """``(S,)`` the slot's ``L`` row that the next-event estimate's shadow ray adds to when it ends (programs with
+    several rows; kept in the state field ``srow``); ``None``: the program's :meth:`VertexProgram.row` of the slot
+    after the vertex."""
 
 
 class VertexProgram:
@@ -76,6 +80,13 @@ class VertexProgram:
     def structure(self) -> tuple[Any, ...]:
         """Everything the program's step code depends on, as plain values (part of the compile cache's key)."""
         return ("pt", *(h.structure for h in self.hooks))
+
+    @property
+    def fused_tail(self) -> bool:
+        """The driver's tail may fuse this program's vertex into the tracking step (:meth:`Transport.advance
+        <nrc.render.wavefront.step.Transport.advance>`): nothing is kept of its vertex passes (``pt`` without
+        hooks; a hook's watcher records them)."""
+        return not self.hooks
 
     @property
     def skips_env(self) -> bool:
@@ -146,9 +157,17 @@ class Collector:
     def __init__(self, watchers: tuple = ()) -> None:
         self.watchers = tuple(w for w in watchers if w is not None)
 
+    @property
+    def needs_vertex_passes(self) -> bool:
+        """The collector keeps something of every vertex pass (:meth:`vertex_pass`): the driver's tail cannot fuse
+        the vertex into the tracking step (``pt``: when a watcher, the reuse pass's record, is attached)."""
+        return bool(self.watchers)
+
     def rows(self, ly: Any, I: Tensor, j: Tensor | int) -> Tensor:
-        """Accumulator index of row ``j`` (per slot or one for all) of the given slots."""
-        return I[ly.i("dest")]
+        """Accumulator index of row ``j`` (per slot, one for all, or ``(R, 1)``: rows ``R`` of every slot, giving
+        ``(R, K)``) of the given slots ``I`` (``K`` columns)."""
+        dest = I[ly.i("dest")]
+        return dest.expand(j.shape[0], -1) if isinstance(j, Tensor) and j.dim() == 2 else dest
 
     def current_rows(self, ly: Any, I: Tensor) -> Tensor:
         """Accumulator index of the given slots' current segment."""

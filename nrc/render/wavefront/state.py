@@ -13,6 +13,7 @@ Fields (units: world units, radiance in linear RGB):
 ``t, tmax``  1, 1  current distance along the free flight and its end (box exit)
 ``beta``     3     throughput (for training paths relative to the last recorded vertex)
 ``pdf``      1     phase pdf of ``d`` (0: a camera ray; MIS of environment escapes)
+``os``       3     shadow ray origin (the vertex that started it; the free flight goes on meanwhile)
 ``wi``       3     shadow ray direction
 ``ts, tse``  1, 1  shadow ray distance and end
 ``tr``       1     shadow ray's running transmittance (ratio tracking)
@@ -23,16 +24,18 @@ Fields (units: world units, radiance in linear RGB):
 Integer fields: ``dest`` (accumulator row of row 0: the pixel, or a training path's discard row), ``key``
 and ``cnt`` (counter-based RNG), ``n`` (real scattering events), ``flight`` (one of ``DONE``, ``FLIGHT``,
 ``VERTEX``, ``QUERY``, ``ESCAPED``), ``shadow`` (0 none, 1 pending in the slot, 2 queued for an external
-estimator), ``occupied`` (holds an unharvested path), ``n_shadow_steps``; and ``skip_env`` (1: the current
+estimator), ``occupied`` (holds an unharvested path), ``n_shadow_steps`` and ``n_shadow`` (shadow-ray steps
+and shadow rays traced in the slot: the work counters, read at harvest); and ``skip_env`` (1: the current
 segment's escape does not count the environment, :attr:`Decision.skip_env
 <nrc.render.wavefront.program.Decision.skip_env>`) where the vertex program can set it
 (:attr:`VertexProgram.skips_env <nrc.render.wavefront.program.VertexProgram.skips_env>`; ``pt`` without reuse
-has no such field).
+has no such field); and ``srow`` (the ``L`` row the pending shadow ray adds to, set at its vertex) where the program
+has several rows.
 
 A renderer's vertex program (:mod:`nrc.render.wavefront.program`) adds its own fields after these (``nrc``: the
 termination rule's path spread, the training records' bookkeeping; :mod:`nrc.render.radiance_caching.vertex`).
 
-Memory: ``4 NF + 8 NI`` bytes a slot (136 for ``pt``, 268 for ``nrc`` with ``V = 4``; 8 more with ``skip_env``).
+Memory: ``4 NF + 8 NI`` bytes a slot (156 for ``pt``; 8 more with ``skip_env``; ``nrc`` adds its own fields).
 """
 
 from __future__ import annotations
@@ -46,9 +49,9 @@ from torch import Tensor
 # flight states
 DONE, FLIGHT, VERTEX, QUERY, ESCAPED = 0, 1, 2, 3, 4
 
-_FLOAT = [("o", 3), ("d", 3), ("t", 1), ("tmax", 1), ("beta", 3), ("pdf", 1), ("wi", 3), ("ts", 1), ("tse", 1),
-          ("tr", 1), ("csh", 3)]
-_INT = ["dest", "key", "cnt", "n", "flight", "shadow", "occupied", "n_shadow_steps"]
+_FLOAT = [("o", 3), ("d", 3), ("t", 1), ("tmax", 1), ("beta", 3), ("pdf", 1), ("os", 3), ("wi", 3), ("ts", 1),
+          ("tse", 1), ("tr", 1), ("csh", 3)]
+_INT = ["dest", "key", "cnt", "n", "flight", "shadow", "occupied", "n_shadow_steps", "n_shadow"]
 
 
 def where3(m: Tensor, a: tuple, b: tuple) -> tuple:
@@ -67,6 +70,7 @@ class PathState:
     tmax: Any = None
     beta: Any = None
     pdf: Any = None
+    os: Any = None
     wi: Any = None
     ts: Any = None
     tse: Any = None
@@ -81,7 +85,9 @@ class PathState:
     shadow: Any = None
     occupied: Any = None
     n_shadow_steps: Any = None
+    n_shadow: Any = None
     skip_env: Any = None
+    srow: Any = None
     # a vertex program's own fields are set as further attributes by Layout.unpack
 
 
@@ -108,7 +114,8 @@ class Layout:
             self._f[name] = (pos, width)
             pos += width
         object.__setattr__(self, "nf", pos)
-        for k, name in enumerate(_INT + ["skip_env"] * self.skip_env + list(self.extra_int)):
+        for k, name in enumerate(_INT + ["skip_env"] * self.skip_env + ["srow"] * (self.rows > 1)
+                                 + list(self.extra_int)):
             self._i[name] = k
         object.__setattr__(self, "ni", len(self._i))
 

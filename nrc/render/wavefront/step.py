@@ -3,13 +3,14 @@
 Two pure functions of the packed state (:mod:`nrc.render.wavefront.state`) and the scene inputs, run either
 eagerly or ``torch.compile``'d (the same code; :mod:`nrc.render.wavefront.machine`):
 
-:meth:`Transport.track` -- one tracking step of every slot. A slot with a pending shadow ray advances it by
-    one ratio-tracking step (its contribution lands in ``L`` when it ends); otherwise its free flight takes
-    one delta-tracking step against the majorant of the brick it is in (:meth:`BrickTables.segment`): a
-    tentative collision inside the brick, a move to the brick's exit (an empty brick costs one step), or the
-    end of the flight (``ESCAPED``; the environment is added when the slot is harvested). A real collision
-    leaves the slot waiting at the vertex (``VERTEX``, ``o`` = the vertex); the continuation of the last
-    allowed vertex that collides ends the path.
+:meth:`Transport.track` -- one tracking step of every slot. A slot's pending shadow ray advances by one
+    ratio-tracking step (its contribution lands in ``L`` when it ends) and, in the same step, its free flight
+    takes one delta-tracking step against the majorant of the brick it is in (:meth:`BrickTables.segment`): a
+    tentative collision inside the brick, a move to the brick's exit (an empty brick, and the empty cube around
+    it, cost one step), or the end of the flight (``ESCAPED``; the environment is added when the slot is
+    harvested). A real collision leaves the slot waiting at the vertex (``VERTEX``, ``o`` = the vertex) until the
+    shadow ray of the vertex before it has ended, so a path's chain of steps is the longer of its flights and its
+    shadow rays, not their sum; the continuation of the last allowed vertex that collides ends the path.
 :meth:`Transport.vertex` -- the slots waiting at a real collision (a few percent; the driver runs it on that
     subset). The renderer's vertex program (:mod:`nrc.render.wavefront.program`) decides first: whether the path
     goes on (a path that ends here becomes a ``QUERY`` for the renderer), whether the vertex makes a next-event
@@ -24,9 +25,12 @@ the flat density grid and the flat majorant table. So a compiled step serves eve
 light of the same *structure* (:attr:`Transport.key`: light types and counts, estimator, layout, settings that
 change the code), and changing the density scale, g, albedo, a light or the VDB recompiles nothing.
 
+:meth:`Transport.advance` -- the driver's tail (few live slots): :meth:`track`, then :meth:`vertex` on every slot
+    that reached a vertex, in one call.
+
 Random numbers are counter-based (:mod:`nrc.transport.rng`): the draw ``(key, cnt)`` of a path, lanes 0-1 for
-the tracking step and lanes 2.. for the vertex, so an image depends on ``(seed, path id)`` only, not on the
-number of slots or the refill cadence.
+the free flight's step, lanes 2.. for the vertex and the last two for the shadow ray's step, so an image depends
+on ``(seed, path id)`` only, not on the number of slots, the refill cadence or which calls fuse the vertex.
 """
 
 from __future__ import annotations
@@ -126,6 +130,12 @@ class Transport:
         self.n_params = self.ix["lights"] + len(table.values)
 
     @property
+    def fusable(self) -> bool:
+        """The structure has the tail's fused step (:meth:`advance`): its shadow rays are traced inline and its
+        vertex program lets the tail fuse its vertex (:attr:`VertexProgram.fused_tail`)."""
+        return self.inline_shadow and self.program.fused_tail
+
+    @property
     def structure(self) -> tuple[Any, ...]:
         """What the step's code depends on, as plain values (stable across processes; the persistent cache's
         marker is named from it)."""
@@ -176,38 +186,41 @@ class Transport:
 
         ff, sh = s.flight == FLIGHT, s.shadow == 1
         cnt = s.cnt + (ff | sh).long()
-        u0, u1 = self.uniforms(s.key, cnt, 2)
+        # the draw (key, cnt): lanes 0-1 the free flight's step, the vertex's lanes after it (Transport.vertex, at the
+        # counter of its collision), the last two the shadow ray's step (unused lanes are never computed compiled)
+        u = self.uniforms(s.key, cnt, self.lanes + 2)
         zero = torch.zeros_like(s.t)
+        inf = torch.full_like(s.t, math.inf)
 
-        run_ff = ff & ~sh
-        dr = where3(sh, s.wi, s.d)
-        tr = torch.where(sh, s.ts, s.t)
-        te = torch.where(sh, s.tse, s.tmax)
-        m, t_brick = BrickTables.segment(majorant, bricks, self.n_tables, s.o, dr, tr, sh)
-        seg_end = torch.minimum(t_brick, te)
-        tc = torch.where(m > 0, tr - torch.log1p(-u0) / m.clamp(min=1e-30), torch.full_like(tr, math.inf))
-        hit = tc < seg_end
-        passed = ~hit & (seg_end >= te)
-        tx = torch.where(hit, tc, seg_end)
-        x = (s.o[0] + tx * dr[0], s.o[1] + tx * dr[1], s.o[2] + tx * dr[2])
-        # Only tentative collisions of running rays need the density; the others look up the box corner,
-        # whose voxels stay in cache (a brick crossing or an idle slot costs no memory traffic).
-        need = hit & (run_ff | sh)
-        sigma = scale * trilinear(density, dims, lo, hi, where3(need, x, lo))
+        def tentative(o: tuple, d: tuple, t: Tensor, t_end: Tensor, shadow: bool, ud: Tensor, run: Tensor) -> tuple:
+            """A delta-tracking step against the brick majorant: ``(majorant, hit, passed the end, x, t, sigma)``;
+            the density is looked up only where a running ray's tentative collision needs it (the others read the
+            box corner, whose voxels stay in cache)."""
+            m, t_brick = BrickTables.segment(majorant, bricks, self.n_tables, o, d, t, shadow)
+            seg_end = torch.minimum(t_brick, t_end)
+            tc = torch.where(m > 0, t - torch.log1p(-ud) / m.clamp(min=1e-30), inf)
+            hit = tc < seg_end
+            tx = torch.where(hit, tc, seg_end)
+            x = (o[0] + tx * d[0], o[1] + tx * d[1], o[2] + tx * d[2])
+            sigma = scale * trilinear(density, dims, lo, hi, where3(hit & run, x, lo))
+            return m, hit, ~hit & (seg_end >= t_end), x, tx, sigma
 
-        # Shadow rays: ratio tracking (with roulette); the contribution lands in L when the ray ends.
-        Tn = torch.where(hit, ratio_step(s.tr, sigma, m, u1, thr if self.roulette else None), s.tr)
-        sh_end = sh & (passed | (Tn == 0))
-        row = self.row_of(s)
+        # Shadow rays: ratio tracking (with roulette) from the vertex that started them (os), alongside the free
+        # flight to the next vertex; the contribution lands in L when the ray ends.
+        ms, hit_s, passed_s, _, txs, sigma_s = tentative(s.os, s.wi, s.ts, s.tse, True, u[-2], sh)
+        Tn = torch.where(hit_s, ratio_step(s.tr, sigma_s, ms, u[-1], thr if self.roulette else None), s.tr)
+        sh_end = sh & (passed_s | (Tn == 0))
+        row = s.srow if s.srow is not None else self.row_of(s)  # the row its vertex chose
         gain = tuple(torch.where(sh_end, c * Tn, zero) for c in s.csh)
         s.L = self._add_to_rows(s.L, row, gain)
-        s.ts = torch.where(sh, tx, s.ts)
+        s.ts = torch.where(sh, txs, s.ts)
         s.tr = torch.where(sh, Tn, s.tr)
 
         # Free flights: escape (the environment is added at harvest), null or real collision.
-        esc = run_ff & passed
-        real = run_ff & hit & (u1 * m < sigma)
-        s.t = torch.where(run_ff & ~passed & ~real, tx, s.t)
+        m, hit, passed, x, tx, sigma = tentative(s.o, s.d, s.t, s.tmax, False, u[0], ff)
+        esc = ff & passed
+        real = ff & hit & (u[1] * m < sigma)
+        s.t = torch.where(ff & ~passed & ~real, tx, s.t)
         at_limit = real & (s.n.to(torch.float32) >= max_scatter)  # the last vertex's continuation collided
         scat = real & ~at_limit
         s.o = where3(scat, x, s.o)
@@ -225,6 +238,17 @@ class Transport:
             m = row == j
             out.append(tuple(a + torch.where(m, b, torch.zeros_like(b)) for a, b in zip(Lj, gain)))
         return tuple(out)
+
+    # ------------------------------------------------------------------ the tail's fused step
+    def advance(self, F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> tuple[Tensor, Tensor]:
+        """One tracking step of every slot, then the vertex of every slot that reached one (the driver's tail:
+        few live slots, where a call costs its fixed overhead, not its slots). The vertex runs on every slot and is
+        kept where the slot waits at a real collision, so a path's draws and operations are those of
+        :meth:`track` followed by a vertex pass. Only for inline shadow rays (a queued request needs the driver)."""
+        F, I = self.track(F, I, P, density, majorant)
+        at = (I[self.layout.i("flight")] == VERTEX) & (I[self.layout.i("shadow")] == 0)
+        Fv, Iv = self.vertex(F, I, P, density, majorant)
+        return torch.where(at, Fv, F), torch.where(at, Iv, I)
 
     # ------------------------------------------------------------------ a real collision
     def vertex(self, F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> tuple[Tensor, Tensor]:
@@ -266,6 +290,7 @@ class Transport:
             w = phase * torch.where(l_env & dec.mis, power_heuristic(l_pdf, phase), torch.ones_like(phase))
             csh = tuple(b * lw * w for b, lw in zip(dec.nee_beta, l_w))
             sh = torch.where(nee, torch.full_like(sh, 1 if self.inline_shadow else 2), sh)
+            s.n_shadow = s.n_shadow + (sh == 1).long()
         beta_s = dec.beta
         amax = torch.maximum(torch.maximum(beta_s[0], beta_s[1]), beta_s[2])
         stop = amax <= 0
@@ -290,6 +315,7 @@ class Transport:
                                 "(the state has no skip_env field)")
             s.skip_env = torch.where(go, dec.skip_env.long(), s.skip_env)
         s.wi = where3(nee, wi, s.wi)
+        s.os = where3(nee, x, s.os)
         s.ts = torch.where(nee, zero, s.ts)
         s.tse = torch.where(nee, tse, s.tse)
         s.tr = torch.where(nee, zero + 1.0, s.tr)
@@ -297,4 +323,7 @@ class Transport:
         s.n = torch.where(go, n_s, s.n)
         s.flight = torch.where(go, torch.where(stop, DONE, FLIGHT), torch.full_like(s.flight, QUERY))
         s.shadow = sh
+        if s.srow is not None:  # several rows: the one this vertex's shadow ray adds to
+            srow = dec.shadow_row if dec.shadow_row is not None else self.row_of(s)
+            s.srow = torch.where(nee, srow, s.srow)
         return self.layout.pack(s)
