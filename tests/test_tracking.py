@@ -14,11 +14,10 @@ from nrc.transport.tracking import (
     majorant_segments,
     optical_depth_bounds,
     sample_free_flight,
-    skip_radius,
 )
 from conftest import constant_grid, hard_rays, spike_grid, unit
 from nrc.volume.grid import DensityGrid
-from nrc.volume.majorant import MajorantGrid
+from nrc.volume.majorant import MajorantGrid, skip_radius
 
 
 pytestmark = pytest.mark.usefixtures("single_thread")

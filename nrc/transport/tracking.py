@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from nrc.volume.majorant import MAX_SKIP, BrickTables, next_segment, skip_radius  # noqa: F401 (re-exported)
+from nrc.volume.majorant import BrickTables, next_segment, skip_radius
 
 if TYPE_CHECKING:  # pragma: no cover
     from nrc.volume.grid import DensityGrid
@@ -137,7 +137,6 @@ _D = slice(11, 14)
 _RES = 14  # delta: collision distance; bounds: the brick's minorant
 _NCOL = 15
 _FOLD = 1e30  # residual ratio tracking: prod above this takes exp(-tauc) in (see track)
-
 
 
 class MajorantWalk:

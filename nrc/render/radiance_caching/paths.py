@@ -131,6 +131,10 @@ class TrainingPool:
     def block(self, frame: int) -> int:
         return frame % self.blocks
 
+    def block_of(self, tids: Tensor) -> Tensor:
+        """The block of each pool path ``tids`` (so ``started[block_of(tids)]`` is the frame it started in)."""
+        return torch.div(tids, self.n_train, rounding_mode="floor")
+
     def tids(self, frame: int) -> slice:
         """The pool paths of ``frame``'s training paths."""
         b = self.block(frame)
@@ -151,7 +155,7 @@ class TrainingPool:
         dropped = 0
         if self.carry is not None:
             Fc, Ic = self.carry
-            mine = torch.div(Ic[layout.i("rec_base")] // V, self.n_train, rounding_mode="floor") == b
+            mine = self.block_of(Ic[layout.i("rec_base")] // V) == b
             dropped = int(mine.sum())
             if dropped:
                 keep = (~mine).nonzero().squeeze(1)

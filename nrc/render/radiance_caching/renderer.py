@@ -304,7 +304,7 @@ class NRCRenderer:
         late = None
         if not bool(mine.all()):
             other = ~mine
-            started = pool.started[torch.div(ridx[other] // V, pool.n_train, rounding_mode="floor")]
+            started = pool.started[pool.block_of(ridx[other] // V)]
             late = (TrainingRecords(*(f[other] for f in recs)), ok[other], started)
         return records, valid, late
 
@@ -342,8 +342,7 @@ class NRCRenderer:
         n_late = int(late.sum())
         delay = None
         if n_late:
-            blocks = torch.div(late.nonzero().squeeze(1), pool.n_train, rounding_mode="floor")
-            delay = float((frame - pool.started[blocks]).float().mean())
+            delay = float((frame - pool.started[pool.block_of(late.nonzero().squeeze(1))]).float().mean())
         return {"training_paths_in_flight": int(trace.in_flight.sum()), "training_paths_late": n_late,
                 "training_late_frames": delay, "training_paths_dropped": trace.dropped}
 

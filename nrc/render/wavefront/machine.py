@@ -307,10 +307,10 @@ class Machine:
         inductor_cache_dir()
         torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
         self._track = _compile(self._track_eager, TRACK_OPTIONS)
-        if not self.fusable:
-            self._vertex = _compile(self._vertex_eager, VERTEX_OPTIONS)
         if self.fusable:  # the fused step serves the vertex passes too (package_names)
             self._advance = self._vertex = _compile(self._advance_eager, ADVANCE_OPTIONS)
+        else:
+            self._vertex = _compile(self._vertex_eager, VERTEX_OPTIONS)
 
     @property
     def fusable(self) -> bool:
