@@ -18,12 +18,14 @@ import logging
 import shlex
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from nrc.config import CONF_DIR, absolute_paths, code_version, resolve_device
@@ -103,40 +105,75 @@ def _write(what: str, path: Path, write: Any) -> None:
         raise NRCError(f"cannot write {what} {path}: {reason}") from None
 
 
-def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
-    """Render the configured scene and write the outputs into ``out_dir``; returns the metrics."""
-    from nrc.evaluation.reference import config_hash, medium_alpha
-    from nrc.io import write_exr, write_png
+@dataclass
+class Job:
+    """A configured render, built and not yet run (:func:`prepare`): the scene, the renderer and what the outputs
+    need. ``out_dir`` is None when nothing is written (the Python API without a run directory)."""
+
+    cfg: DictConfig
+    scene: Any
+    renderer: Any
+    display: Any
+    denoiser: str
+    out_dir: Path | None
+    threads: int
+    time_scene_load_s: float
+
+
+@dataclass
+class Outcome:
+    """A finished render: the linear image (H, W, 3) float32, its metrics (``metrics.json``) and, with
+    ``denoise=oidn``, the denoised image."""
+
+    image: np.ndarray
+    metrics: dict[str, Any]
+    denoised: np.ndarray | None
+
+
+def prepare(cfg: DictConfig, out_dir: Path | None) -> Job:
+    """Check the config (:func:`preflight`), set the threads (``threads``), load the scene and build the renderer;
+    with ``out_dir`` the renderer writes its logs and checkpoints there."""
+    from nrc.config import apply_threads
     from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
-    from nrc.denoise import clamp_bias, denoise, oidn_version
-
     display, denoiser = preflight(cfg)
+    threads = apply_threads(cfg.get("threads", "auto"))
     for warning in ignored_settings(cfg):
         log.warning(warning)
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise NRCError(f"the run directory {out_dir} is a file, not a directory")
-    for name in ("image.exr", "preview.png", "metrics.json"):
-        if (out_dir / name).is_dir():
-            raise NRCError(f"cannot write {out_dir / name}: a directory of that name is in the way")
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        if out_dir.exists() and not out_dir.is_dir():
+            raise NRCError(f"the run directory {out_dir} is a file, not a directory")
+        for name in ("image.exr", "preview.png", "metrics.json"):
+            if (out_dir / name).is_dir():
+                raise NRCError(f"cannot write {out_dir / name}: a directory of that name is in the way")
     t0 = time.perf_counter()
     device = resolve_device(cfg.device)
     scene = load_scene(cfg.scene, device)
     t_load = time.perf_counter() - t0
     renderer = make_renderer(cfg.renderer.name, scene, cfg)
-    if hasattr(renderer, "attach_output"):  # renderers with logs and checkpoints (nrc) write them to the run dir
+    if out_dir is not None and hasattr(renderer, "attach_output"):  # logs and checkpoints (nrc) go to the run dir
         renderer.attach_output(out_dir)
-    result = renderer.render(progress=True)
+    return Job(cfg, scene, renderer, display, denoiser, out_dir, threads, t_load)
+
+
+def finish(job: Job, result: Any) -> Outcome:
+    """The metrics and the denoised image of a render, and (with ``job.out_dir``) the outputs written."""
+    from nrc.evaluation.reference import config_hash, medium_alpha
+    from nrc.io import write_exr, write_png
+
+    from nrc.denoise import clamp_bias, denoise, oidn_version
+
+    cfg, scene, display, out_dir = job.cfg, job.scene, job.display, job.out_dir
     image = np.asarray(result.image, dtype=np.float32)
     nonfinite = int((~np.isfinite(image)).any(axis=-1).sum())
     if nonfinite:
         log.warning("%d pixels are NaN/Inf: kept in image.exr, magenta in preview.png", nonfinite)
     exposure = display.exposure_for(image)
-    metrics = {"time_scene_load_s": t_load, **result.metrics, "device": str(device),
-               "nonfinite_pixels": nonfinite, "preview": {"tonemap": display.tonemap, "exposure": exposure},
-               "code": code_version()}
+    metrics = {"time_scene_load_s": job.time_scene_load_s, **result.metrics, "device": str(scene.device),
+               "threads": job.threads, "nonfinite_pixels": nonfinite,
+               "preview": {"tonemap": display.tonemap, "exposure": exposure}, "code": code_version()}
     attrs = {"renderer": str(cfg.renderer.name), "spp": int(scene.integrator.spp),
              "seed": int(scene.integrator.seed), "config_hash": config_hash(cfg), "code": metrics["code"],
              "alpha": "A channel: 1 - camera-ray transmittance through the pixel centre (the expected fraction "
@@ -144,7 +181,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     if cfg.renderer.name == "nrc":
         attrs["frames"] = int(metrics.get("frames_done", cfg.frames))
     outputs = {"image.exr": ("the image", image, attrs), "preview.png": ("the preview", image, None)}
-    if denoiser == "oidn":  # before anything is written: metrics.json then holds the denoise time
+    denoised = None
+    if job.denoiser == "oidn":  # before anything is written: metrics.json then holds the denoise time
         t0 = time.perf_counter()
         denoised = denoise(image)
         metrics["time_denoise_s"] = time.perf_counter() - t0
@@ -152,6 +190,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
         metrics["denoise_clamp_bias"] = clamp_bias(image)  # what cleaning negative pixels adds to the mean
         outputs["image_denoised.exr"] = ("the denoised image", denoised, {**attrs, "denoiser": metrics["denoise"]})
         outputs["preview_denoised.png"] = ("the denoised preview", denoised, None)
+    if out_dir is None:
+        return Outcome(image, metrics, denoised)
     _write("the run directory", out_dir, lambda: out_dir.mkdir(parents=True, exist_ok=True))
     alpha = medium_alpha(scene)
     for name, (what, img, header) in outputs.items():
@@ -172,7 +212,123 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     elif (out_dir / "tensorboard").is_dir():
         written.append("tensorboard/")
     log.info("wrote %s: %s", out_dir, ", ".join(written))
-    return metrics
+    return Outcome(image, metrics, denoised)
+
+
+def execute(cfg: DictConfig, out_dir: Path | None, progress: bool = True) -> Outcome:
+    """Render the configured scene; with ``out_dir`` write the outputs there (``python -m nrc`` and
+    ``nrc.render`` both run this)."""
+    job = prepare(cfg, out_dir)
+    return finish(job, job.renderer.render(progress=progress))
+
+
+def run(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
+    """Render the configured scene and write the outputs into ``out_dir``; returns the metrics."""
+    return execute(cfg, Path(out_dir)).metrics
+
+
+def sweep_jobs(config: DictConfig) -> list[list[str]]:
+    """The override lists of a multirun's jobs (Hydra's basic sweeper: the cartesian product of the swept values),
+    from the sweep's config (``hydra.overrides.task``)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
+    return [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+
+
+def concurrent_jobs(launcher: DictConfig, n_jobs: int, cores: int) -> int | None:
+    """How many of a sweep's ``n_jobs`` jobs its launcher runs at once on this machine: joblib's ``n_jobs`` (``-1``
+    all cores, ``-k`` all but k - 1), ``submitit_local`` all of them; None for launchers that run one job at a time
+    in this process (the basic launcher: a job takes this process's threads) or on other machines (Slurm grants a
+    job its cores: ``threads=auto`` reads ``$SLURM_CPUS_PER_TASK``)."""
+    target = str(launcher.get("_target_", ""))
+    if target.endswith("JoblibLauncher"):
+        given = int(launcher.get("n_jobs", -1))
+        workers = given if given > 0 else max(1, cores + 1 + given)
+        return max(1, min(workers, n_jobs))
+    if target.endswith("submitit_launcher.LocalLauncher"):
+        return max(1, n_jobs)
+    return None
+
+
+class SweepSetup(Callback):
+    """A parallel sweep on this machine (joblib, ``submitit_local``), before its jobs start, in the launching
+    process: each job is granted ``cores / jobs at once`` threads (``$NRC_THREADS``, which ``threads=auto`` reads;
+    a job's explicit ``threads=N`` wins), and the compiled step of every structure the jobs use is built once for
+    that thread count (a tiny render of each job with ``renderer.backend=compiled``), so that no worker compiles
+    it again, and ``renderer.backend=auto`` in a worker finds it (a load of milliseconds) instead of rendering
+    eagerly. Jobs with ``renderer.backend=eager``, on another device, or whose config is invalid (the job itself
+    reports it) are skipped."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        import os
+
+        import torch
+
+        from nrc.config import THREADS_ENV
+
+        try:
+            jobs = sweep_jobs(config)
+        except Exception as exc:  # noqa: BLE001 -- the sweeper reports a bad sweep in its own words
+            log.info("sweep setup skipped: %s", exc)
+            return
+        cores = torch.get_num_threads()
+        at_once = concurrent_jobs(config.hydra.launcher, len(jobs), cores)
+        if at_once is None:
+            return
+        os.environ.setdefault(THREADS_ENV, str(max(1, cores // at_once)))
+        log.info("sweep: %d jobs, %d at once, %s threads each", len(jobs), at_once, os.environ[THREADS_ENV])
+        try:
+            prebuild_steps(jobs)
+        finally:
+            torch.set_num_threads(cores)
+
+
+PREBUILD_OVERRIDES = ("scene.camera.width=8", "scene.camera.height=4", "scene.integrator.spp=1", "frames=1",
+                      "denoise=none", "renderer.backend=compiled")
+
+
+def step_of(cfg: DictConfig) -> tuple[tuple[Any, ...], bool]:
+    """The key of the transport step structure ``cfg``'s renderer compiles (one compiled step per key and thread
+    count), and whether its AOT packages for this process's thread count are in the cache already: its renderer
+    built, nothing rendered."""
+    from nrc.render.registry import make_renderer
+    from nrc.render.wavefront.machine import packages_cached
+    from nrc.scene import load_scene
+
+    device = resolve_device(cfg.device)
+    renderer = make_renderer(cfg.renderer.name, load_scene(cfg.scene, device), cfg)
+    core = renderer.core if hasattr(renderer, "core") else renderer.tracer.core
+    return core.step.key, packages_cached(core.step, core.steps_per_call, device)
+
+
+def prebuild_steps(jobs: list[list[str]]) -> None:
+    """Build (or load) the compiled step of each structure the jobs use, at the job's thread count, by a tiny render
+    of the first job of each (:data:`PREBUILD_OVERRIDES`) in this process."""
+    from nrc.config import apply_threads, compose, job_threads
+
+    seen = set()
+    for job in jobs:
+        overrides = [o for o in job if not o.startswith("reference.")]  # a reference job's own keys: pt underneath
+        try:
+            cfg = compose(overrides)
+            absolute_paths(cfg)
+            if cfg.renderer.get("name") not in ("pt", "nrc") or cfg.renderer.get("backend") == "eager" \
+                    or not str(cfg.get("device", "cpu")).startswith("cpu"):
+                continue
+            threads = job_threads(cfg.get("threads", "auto"))
+            tiny = compose([*overrides, *PREBUILD_OVERRIDES, f"threads={threads}"])
+            absolute_paths(tiny)
+            apply_threads(threads)  # the packages are keyed by the thread count
+            key, cached = step_of(tiny)
+            if (key, threads) in seen:
+                continue
+            seen.add((key, threads))
+            if not cached:  # built by a tiny render (a cached one would only be loaded: nothing to do)
+                execute(tiny, None, progress=False)
+        except Exception as exc:  # noqa: BLE001 -- the job itself reports a bad config, in its own words
+            log.info("sweep setup: no step built for %s (%s)", " ".join(overrides), exc)
 
 
 def resume_command(out_dir: Path) -> str:

@@ -165,7 +165,10 @@ def compose(overrides: Sequence[str] | None = None, return_hydra_config: bool = 
 def _hydra_compose(overrides: list[str], return_hydra_config: bool = False) -> Any:
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
 
+    if GlobalHydra.instance().is_initialized():  # inside a Hydra app (a sweep's callbacks): its search path is ours
+        return hydra_compose(config_name="config", overrides=overrides, return_hydra_config=return_hydra_config)
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         return hydra_compose(config_name="config", overrides=overrides, return_hydra_config=return_hydra_config)
 
@@ -263,3 +266,36 @@ def code_version() -> str:
         return f"nrc {pkg}"
     return f"nrc {pkg} ({rev}{'+dirty' if dirty else ''})"
 
+
+
+THREADS_ENV = "NRC_THREADS"  # the threads a sweep's launcher grants each job (set by nrc.app.SweepSetup)
+
+
+def job_threads(value: Any = "auto") -> int:
+    """The CPU threads a job renders with (the ``threads`` setting): an integer as given, else ``auto``: what the
+    launcher grants each job (``$NRC_THREADS``, set for a parallel sweep's workers: the cores / the jobs running at
+    once), else what Slurm grants the task (``$SLURM_CPUS_PER_TASK``), else torch's own count (the cores this
+    process may use, or ``OMP_NUM_THREADS``)."""
+    import os
+
+    import torch
+
+    if value is None or value == "auto":
+        for name in (THREADS_ENV, "SLURM_CPUS_PER_TASK"):
+            given = os.environ.get(name, "")
+            if given.isdigit() and int(given) >= 1:
+                return int(given)
+        return torch.get_num_threads()
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"threads must be a positive integer or auto, got {value!r}")
+    return value
+
+
+def apply_threads(value: Any = "auto") -> int:
+    """Set torch's intra-op threads to :func:`job_threads` (``value``) and return the count."""
+    import torch
+
+    n = job_threads(value)
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    return n

@@ -11,6 +11,14 @@ albedo). Each point's own tables stay in ``<out>/<point>/``. A point whose ``sum
 (delete it to re-measure). Usage::
 
     python scripts/crossover_map.py --out docs/results/crossover_160x90 [--points d0.6,d5] [--width 160 --height 90]
+
+**Points as jobs** (``--jobs local|slurm``, submitit, ``pip install -e '.[cluster]'``): each missing point runs as
+its own job, which holds the point's path tracer and NRC runs (equal-time ratios are valid only when both are timed
+on one machine with nothing else running): ``local`` runs them one after another on this machine, ``slurm`` submits
+one job per point on a node of its own (``--exclusive``; ``--slurm partition=cpu --slurm cpus_per_task=32
+--slurm timeout_min=120``). Each summary records its node, machine type and threads; the map is built from the
+summaries once every job is done, and refuses to mix machine types. The references are rendered first
+(``python -m nrc.reference_app``, docs/references.md): a job never renders one.
 """
 
 from __future__ import annotations
@@ -64,6 +72,64 @@ def row_of(summary: dict, config: str) -> dict | None:
     return rows[0] if rows else None
 
 
+def check_one_machine_type(summaries: dict[str, dict]) -> None:
+    """Refuse to put points measured on different machine types (CPU model, cores, threads, torch) in one map."""
+    kinds: dict[str, list[str]] = {}
+    for name, s in summaries.items():
+        meta = s.get("meta", {})
+        kinds.setdefault(meta.get("machine_type") or meta.get("machine") or "unknown", []).append(name)
+    if len(kinds) > 1:
+        raise SystemExit("crossover_map: the points were measured on different machine types, which equal-time "
+                         "ratios cannot mix: " + "; ".join(f"{', '.join(v)} on {k}" for k, v in kinds.items())
+                         + " (re-run the odd ones out on one type: delete their summary.json)")
+
+
+def _run_point(cmd: list[str]) -> str:
+    """One point's measurement, inside its job; returns the node it ran on."""
+    import platform
+
+    subprocess.run(cmd, cwd=REPO, check=True)
+    return platform.node()
+
+
+def run_jobs(todo: dict[str, list[str]], scenes: dict[str, tuple[list[str], int]], args: argparse.Namespace) -> None:
+    """Each point of ``todo`` as a submitit job (see the module docstring); returns when all are done."""
+    from nrc.config import compose
+    from nrc.evaluation.reference import default_reference_path
+
+    for name, (scene, ref_spp) in scenes.items():
+        ref = default_reference_path(compose(scene), ref_spp)
+        if not ref.is_file():
+            raise SystemExit(f"crossover_map: point {name} has no reference {os.path.relpath(ref, REPO)}: render it "
+                             f"first, e.g. python -m nrc.reference_app {' '.join(scene)} "
+                             f"scene.integrator.spp={ref_spp} (docs/references.md)")
+    try:
+        import submitit
+    except ImportError:
+        raise SystemExit("crossover_map: --jobs needs submitit: pip install -e '.[cluster]'") from None
+    folder = args.out / ".jobs"
+    if args.jobs == "local":
+        executor = submitit.LocalExecutor(folder=folder)
+        executor.update_parameters(timeout_min=24 * 60)
+        for name, cmd in todo.items():  # one at a time: each job needs the machine to itself
+            job = executor.submit(_run_point, cmd)
+            print(f"[{name}] local job {job.job_id}", flush=True)
+            print(f"[{name}] done on {job.result()}", flush=True)
+        return
+    params: dict = {"slurm_exclusive": True, "timeout_min": 120}
+    generic = ("timeout_min", "cpus_per_task", "mem_gb", "nodes", "tasks_per_node", "name")
+    for item in args.slurm:
+        key, _, value = item.partition("=")
+        params[key if key in generic else f"slurm_{key}"] = int(value) if value.isdigit() else value
+    executor = submitit.AutoExecutor(folder=folder, cluster="slurm")
+    executor.update_parameters(**params)
+    jobs = {name: executor.submit(_run_point, cmd) for name, cmd in todo.items()}
+    for name, job in jobs.items():
+        print(f"[{name}] slurm job {job.job_id}", flush=True)
+    for name, job in jobs.items():
+        print(f"[{name}] done on {job.result()}", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, required=True)
@@ -77,30 +143,46 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ref-spp", type=int, default=None,
                    help="spp of every point's reference (default: each point's own, POINTS); larger images need fewer")
     p.add_argument("--nrc", default="renderer=nrc,renderer.backend=compiled", help="the NRC configuration's overrides")
+    p.add_argument("--pt", default="renderer=pt,renderer.backend=compiled,transmittance=ratio",
+                   help="the path tracer configuration's overrides")
+    p.add_argument("--jobs", choices=["none", "local", "slurm"], default="none",
+                   help="run each missing point as its own job (submitit): local, one at a time; slurm, a node each")
+    p.add_argument("--slurm", action="append", default=[], metavar="KEY=VALUE",
+                   help="a Slurm parameter of the jobs (partition=cpu, cpus_per_task=32, timeout_min=120, ...)")
     args, extra = p.parse_known_args(argv)
     args.out = args.out.resolve()
     os.chdir(REPO)
     args.out.mkdir(parents=True, exist_ok=True)
-    results = []
+    points = {}
     for name in args.points.split(","):
+        if name not in POINTS:
+            raise SystemExit(f"crossover_map: unknown point {name!r} (known: {', '.join(POINTS)})")
         ovs, ref_spp = POINTS[name]
         ref_spp = args.ref_spp or ref_spp
         scene = ["scene=thick", f"scene.volume.path={VDB}", f"scene.camera.width={args.width}",
                  f"scene.camera.height={args.height}", *ovs, *extra]
         out = args.out / name
-        if not (out / "summary.json").is_file():
+        cmd = [sys.executable, str(REPO / "scripts" / "speed_vs_error.py"), "--mode", "single", "--denoise",
+               "--repeats", "2", "--configs", "", "--preset", "none", "--config", f"pt_compiled={args.pt}",
+               "--config", f"nrc={args.nrc}", "--pt-spp", args.pt_spp, "--warmup", str(args.warmup),
+               "--frames", str(args.frames), "--nrc-spp", args.nrc_spp, "--ref-spp", str(ref_spp),
+               "--out", os.path.relpath(out, REPO), "--quiet", *scene]
+        points[name] = (scene, ref_spp, out, cmd)
+    todo = {name: cmd for name, (_, _, out, cmd) in points.items() if not (out / "summary.json").is_file()}
+    if args.jobs != "none" and todo:
+        run_jobs(todo, {name: points[name][:2] for name in todo}, args)
+    for name, cmd in todo.items():
+        if args.jobs == "none":
             t0 = time.perf_counter()
-            cmd = [sys.executable, str(REPO / "scripts" / "speed_vs_error.py"), "--mode", "single", "--denoise",
-                   "--repeats", "2", "--configs", "", "--preset", "none",
-                   "--config", "pt_compiled=renderer=pt,renderer.backend=compiled,transmittance=ratio",
-                   "--config", f"nrc={args.nrc}", "--pt-spp", args.pt_spp, "--warmup", str(args.warmup),
-                   "--frames", str(args.frames), "--nrc-spp", args.nrc_spp, "--ref-spp", str(ref_spp),
-                   "--out", os.path.relpath(out, REPO), "--quiet", *scene]
             print(f"[{name}] {' '.join(cmd[2:])}", flush=True)
             subprocess.run(cmd, cwd=REPO, check=True)
             print(f"[{name}] done in {time.perf_counter() - t0:.0f} s", flush=True)
-        s = json.loads((out / "summary.json").read_text())
-        res = {"point": name, **optical_depth(scene), "ref_spp": ref_spp,
+    summaries = {name: json.loads((out / "summary.json").read_text()) for name, (_, _, out, _) in points.items()}
+    check_one_machine_type(summaries)
+    results = []
+    for name, (scene, ref_spp, out, _) in points.items():
+        s = summaries[name]
+        res = {"point": name, "node": s["meta"].get("node"), "machine_type": s["meta"].get("machine_type"), **optical_depth(scene), "ref_spp": ref_spp,
                "rel_mse_floor_medium": s["meta"]["rel_mse_floor_medium"]}
         for key, cfg, base in (("raw", "nrc", "pt"), ("oidn", "nrc+oidn", "pt+oidn")):
             q = pick(s, cfg, base)

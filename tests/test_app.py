@@ -108,7 +108,8 @@ def test_multirun_sweeps_with_the_joblib_launcher(tmp_path):
     """`-m` sweeps run each job into its own directory, in parallel processes with hydra/launcher=joblib."""
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
     cmd = [sys.executable, "-m", "nrc", "-m", f"hydra.sweep.dir={tmp_path}", "hydra/launcher=joblib",
-           "hydra.launcher.n_jobs=2", *TINY, *NRC_TINY, "frames=1", "batch_filter=none,stripes"]
+           "hydra.launcher.n_jobs=2", *TINY, *NRC_TINY, "frames=1", "batch_filter=none,stripes",
+           "renderer.backend=eager"]  # the launcher, not the compile (the sweep would build the step first: test_sweeps.py)
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     for job in ("0", "1"):

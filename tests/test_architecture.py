@@ -18,7 +18,7 @@ LAYERS = {
     "nrc.cache": 3,
     "nrc.render": 4,
     "nrc.evaluation": 5,
-    "nrc.app": 6, "nrc.__main__": 6, "nrc": 6,  # the package root re-exports
+    "nrc.app": 6, "nrc.api": 6, "nrc.reference_app": 6, "nrc.__main__": 6, "nrc": 6,  # the package root re-exports
 }
 
 

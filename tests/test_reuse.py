@@ -358,10 +358,15 @@ def _renders(extra: list[str], seeds: int = 4, first: int = 0) -> list[np.ndarra
     return out
 
 
+_PLAIN: dict[str, list[np.ndarray]] = {}  # scene -> the plain path tracer's renders (shared by the tests below)
+SUN_SKY = pytest.mark.xdist_group("reuse_sun_sky")  # one worker renders the sun_sky plain images once (CI: loadgroup)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("scene, mode, target, domain", [("sun_sky", "spatiotemporal", "coarse", "light"),
-                                                         ("many_lights", "spatiotemporal", "unshadowed", "light"),
-                                                         ("sun_sky", "spatiotemporal", "unshadowed", "distance")])
+@pytest.mark.parametrize("scene, mode, target, domain", [
+    pytest.param("sun_sky", "spatiotemporal", "coarse", "light", marks=SUN_SKY),
+    ("many_lights", "spatiotemporal", "unshadowed", "light"),
+    pytest.param("sun_sky", "spatiotemporal", "unshadowed", "distance", marks=SUN_SKY)])
 def test_path_tracer_with_reuse_agrees_with_the_path_tracer(scene, mode, target, domain):
     """The path tracer with reuse (32 one-sample passes, the MIS against the sky in the target and the shading)
     against the path tracer without (256 spp, other seeds), block-wise over 8 seeds each (with 4 seeds the
@@ -369,8 +374,9 @@ def test_path_tracer_with_reuse_agrees_with_the_path_tracer(scene, mode, target,
     ``domain=distance`` the sky reached from the first vertex by phase sampling must not be counted again."""
     reuse = _renders([f"scene={scene}", f"renderer.reuse.mode={mode}", f"renderer.reuse.target={target}",
                       f"renderer.reuse.domain={domain}", "scene.integrator.spp=32"], seeds=8)
-    plain = _renders([f"scene={scene}", "scene.integrator.spp=256"], seeds=8, first=100)  # independent paths
-    assert_images_agree(reuse, plain)
+    if scene not in _PLAIN:  # independent paths (other seeds); the same for every reuse setting of a scene
+        _PLAIN[scene] = _renders([f"scene={scene}", "scene.integrator.spp=256"], seeds=8, first=100)
+    assert_images_agree(reuse, _PLAIN[scene])
 
 
 @pytest.mark.slow

@@ -697,8 +697,10 @@ def crossover_summary(docs: Path, link: str = "[`docs/results.md`](docs/results.
                  f"{r['ratio_vs_pt']:.2g}x)")
     wins = sorted((p for p in pts if p["ratio_oidn"] < 1), key=lambda p: p["tau_median"])
     if not wins:
+        means = [p["nrc_mean_ratio_medium"] for p in pts if p.get("nrc_mean_ratio_medium") is not None]
+        dark = bool(means) and max(means) < 0.97
         text += (". After 30 frames NRC + OIDN beats the path tracer + OIDN nowhere on the map: its remaining error is "
-                 "its cache's bias (the image too dark), which the denoiser cannot remove")
+                 f"its cache's error{' (the image too dark)' if dark else ''}, which the denoiser cannot remove")
     elif len(wins) == len(pts):
         text += ". NRC + OIDN is ahead at every point"
     else:

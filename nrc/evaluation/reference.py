@@ -289,6 +289,13 @@ def check_independent(attrs: dict, seeds, path: str | Path = "the reference") ->
 REFERENCE_DIR = Path(__file__).resolve().parents[2] / "data" / "references"
 
 
+def reference_dir() -> Path:
+    """Where references are kept by default: ``$NRC_REFERENCE_DIR`` (a shared path on a cluster), else
+    ``data/references/`` in the checkout."""
+    given = os.environ.get("NRC_REFERENCE_DIR")
+    return Path(given).expanduser() if given else REFERENCE_DIR
+
+
 def default_reference_path(cfg: Any, spp: int) -> Path:
-    """``data/references/reference_<scene hash[:12]>_<spp>spp.exr`` in the checkout."""
-    return REFERENCE_DIR / f"reference_{scene_hash(cfg)[:12]}_{int(spp)}spp.exr"
+    """``<reference dir>/reference_<scene hash[:12]>_<spp>spp.exr`` (:func:`reference_dir`)."""
+    return reference_dir() / f"reference_{scene_hash(cfg)[:12]}_{int(spp)}spp.exr"

@@ -708,6 +708,7 @@ def run(args: Any, overrides: list[str], argv: list[str]) -> int:
             "git": code_version(), "argv": argv,
             "machine": f"{platform.machine()}, {_cpu_count()} cores, torch {torch.__version__} "
                        f"({torch.get_num_threads()} threads)",
+            "machine_type": machine_type(), "node": platform.node(), "threads": torch.get_num_threads(),
             "wall_time_s": time.perf_counter() - start,
         }
         add_corrected(rows, ref.rel_mse_floor, ref.rel_mse_floor_medium)
@@ -763,4 +764,18 @@ def _cpu_count() -> int:
     import os
 
     return os.cpu_count() or 0
+
+
+def machine_type() -> str:
+    """What equal-time ratios depend on: the CPU model, its core count, the threads and the torch version (results
+    from machines of one type may be merged; a node's name is not part of it)."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}, {_cpu_count()} cores, {torch.get_num_threads()} threads, torch {torch.__version__}"
 

@@ -1,0 +1,178 @@
+"""nrc from Python: render a scene from overrides and get the image, the metrics and the config (``nrc.run``,
+``nrc.frames``, ``nrc.load_config``; ``nrc.render`` is the renderers' package, so the call that renders is ``run``,
+as ``python -m nrc`` runs one).
+
+    import nrc
+    r = nrc.run(["scene=thick", "scene.camera.width=160", "scene.camera.height=90"])   # or a dict
+    r.image            # (H, W, 3) float32, linear RGB (numpy); r.denoised with denoise=oidn (the default)
+    r.metrics          # what metrics.json holds;  r.config: the resolved config (OmegaConf)
+    for f in nrc.frames({"renderer": "nrc", "frames": 30}):   # NRC frame by frame: the cache learning
+        print(f.index, f.stats["loss"])                       # stop whenever you like (break)
+
+The same code as ``python -m nrc`` (:func:`nrc.app.execute`): with the same overrides, seed, ``renderer.backend``
+and ``threads`` the image is bitwise the same. Nothing is written unless ``out_dir`` is given (then the run
+directory of ``python -m nrc``: image.exr, preview.png, metrics.json, and for NRC TensorBoard logs and the
+checkpoint). Every error a user can cause is an :class:`nrc.errors.NRCError` naming what is wrong: Hydra's
+composition errors (an unknown key, a bad group) come as :class:`~nrc.errors.ConfigError`.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Union
+
+import numpy as np
+
+from nrc.errors import ConfigError, NRCError
+
+Overrides = Union[Sequence[str], Mapping[str, Any], None]
+
+
+@dataclass
+class Render:
+    """A finished render: ``image`` (H, W, 3) float32 linear RGB; ``denoised`` (with ``denoise=oidn``) or None;
+    ``metrics`` (``metrics.json``'s content); ``config`` the resolved config; ``out_dir`` where the outputs were
+    written, or None."""
+
+    image: np.ndarray
+    denoised: np.ndarray | None
+    metrics: dict[str, Any]
+    config: Any
+    out_dir: Path | None
+
+
+@dataclass
+class Frame:
+    """One NRC frame: ``index`` (from 0), ``image`` this frame's render, ``output`` what the run shows after it
+    (the frame, or the running mean with ``renderer.accumulate=true``), ``stats`` its numbers (loss, times, ...);
+    both images (H, W, 3) float32 linear RGB."""
+
+    index: int
+    image: np.ndarray
+    output: np.ndarray
+    stats: dict[str, Any]
+
+
+def _value(v: Any) -> str:
+    """An override's value as Hydra's grammar reads it."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if v is None:
+        return "null"
+    if isinstance(v, (list, tuple)):
+        return "[" + ",".join(_value(x) for x in v) + "]"
+    if isinstance(v, Path):
+        return str(v)
+    return str(v)
+
+
+def as_overrides(overrides: Overrides) -> list[str]:
+    """``["key=value", ...]`` from a list of override strings or a ``{key: value}`` dict (values may be numbers,
+    booleans, None, lists or strings; a config group takes its option's name, e.g. ``{"scene": "thick"}``)."""
+    if overrides is None:
+        return []
+    if isinstance(overrides, str):
+        raise ConfigError(f"overrides must be a list of 'key=value' strings or a dict, got the string {overrides!r}")
+    if isinstance(overrides, Mapping):
+        return [f"{k}={_value(v)}" for k, v in overrides.items()]
+    out = []
+    for o in overrides:
+        if not isinstance(o, str):
+            raise ConfigError(f"an override must be a 'key=value' string, got {o!r}")
+        out.append(o)
+    return out
+
+
+def load_config(overrides: Overrides = None) -> Any:
+    """The resolved config for ``overrides``, as ``python -m nrc`` composes it (file paths made absolute against
+    the current directory); Hydra's errors as :class:`ConfigError`."""
+    from nrc.config import absolute_paths, compose
+
+    lines = as_overrides(overrides)
+    try:
+        cfg = compose(lines)
+    except Exception as exc:  # Hydra's and OmegaConf's errors (composition, override grammar) become ours
+        if isinstance(exc, NRCError) or type(exc).__module__.split(".")[0] not in ("hydra", "omegaconf"):
+            raise
+        text = " ".join(str(exc).split()).split(" Config search path:")[0]
+        raise ConfigError(f"overrides {lines}: {text}") from None
+    absolute_paths(cfg)
+    return cfg
+
+
+def run(overrides: Overrides = None, *, out_dir: str | Path | None = None, progress: bool = False) -> Render:
+    """Render the scene ``overrides`` configure with its renderer (``renderer=pt|nrc|preview``) and return the
+    image, the denoised image, the metrics and the config; with ``out_dir`` the outputs of ``python -m nrc`` are
+    written there."""
+    from nrc.app import execute
+
+    cfg = load_config(overrides)
+    out = None if out_dir is None else Path(out_dir)
+    outcome = execute(cfg, out, progress=progress)
+    return Render(outcome.image, outcome.denoised, outcome.metrics, cfg, out)
+
+
+class _Stop(BaseException):
+    """The consumer stopped iterating: ends the render thread's frame loop."""
+
+
+_DONE = object()
+
+
+def frames(overrides: Overrides = None, *, out_dir: str | Path | None = None) -> Iterator[Frame]:
+    """NRC frame by frame (``renderer=nrc`` is implied): yields each frame of ``frames`` as it is rendered (the
+    renderer's own per-frame hook, ``NRCRenderer.render(on_frame=...)``); leaving the loop early stops the render
+    after that frame. The frames are those of ``python -m nrc renderer=nrc`` (the last one bitwise). The render
+    runs in a helper thread that waits for the consumer, one frame at a time."""
+    from nrc.app import prepare
+
+    lines = as_overrides(overrides)
+    if not any(o.split("=", 1)[0].lstrip("+") == "renderer" for o in lines):
+        lines = ["renderer=nrc", *lines]
+    cfg = load_config(lines)
+    if cfg.renderer.get("name") != "nrc":
+        raise ConfigError(f"nrc.frames renders renderer=nrc, got renderer={cfg.renderer.get('name')}")
+    job = prepare(cfg, None if out_dir is None else Path(out_dir))
+    return _frame_iterator(job)
+
+
+def _frame_iterator(job: Any) -> Iterator[Frame]:
+    handoff: queue.Queue = queue.Queue(maxsize=1)
+    go, stop = threading.Semaphore(0), threading.Event()
+
+    def on_frame(index: int, image: np.ndarray, output: np.ndarray, stats: dict) -> None:
+        handoff.put(Frame(index, image, output.copy(), dict(stats)))
+        go.acquire()  # the consumer asks for the next frame (or stops)
+        if stop.is_set():
+            raise _Stop
+
+    def work() -> None:
+        try:
+            job.renderer.render(on_frame=on_frame)
+        except _Stop:
+            pass
+        except BaseException as exc:  # noqa: BLE001 -- handed to the consumer, raised there
+            handoff.put(exc)
+            return
+        handoff.put(_DONE)
+
+    thread = threading.Thread(target=work, name="nrc-frames", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = handoff.get()
+            if item is _DONE:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+            go.release()
+    finally:
+        if thread.is_alive():
+            stop.set()
+            go.release()
+            thread.join()

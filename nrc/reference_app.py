@@ -1,0 +1,123 @@
+"""The reference job: ``python -m nrc.reference_app`` (Hydra; ``conf/reference.yaml``), a converged ``pt``
+reference rendered in parts that any Hydra launcher spreads over processes or cluster nodes, then merged
+(:mod:`nrc.evaluation.reference_parts`).
+
+    python -m nrc.reference_app scene=thick scene.integrator.spp=1024 reference.chunk_spp=64        # one process
+    python -m nrc.reference_app -m scene=thick scene.integrator.spp=1024 reference.chunk_spp=64 \\
+        reference.chunks=0:4,4:8,8:12,12:16 hydra/launcher=joblib                                  # four jobs
+
+Each job renders its chunk range into ``<out>.parts/`` (resumable: run a killed job again); with
+``reference.merge=auto`` a single run merges when every chunk is there, and a multirun merges once its jobs are
+done (:class:`MergeAfterSweep`); ``reference.merge=only`` merges the parts found. Errors print one line naming
+what is wrong (a missing chunk names the ranges to render again) and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from nrc.config import CONF_DIR, ConfigReader, absolute_paths, apply_threads
+from nrc.errors import NRCError
+
+log = logging.getLogger("nrc")
+
+
+def settings(cfg: DictConfig) -> tuple[int, str, Path, str]:
+    """``(chunk_spp, chunks, out, merge)`` of the ``reference`` block (unknown keys refused)."""
+    from hydra.utils import to_absolute_path
+
+    from nrc.evaluation.reference import default_reference_path
+
+    r = ConfigReader(cfg.get("reference"), "reference")
+    chunk_spp = r.get_int("chunk_spp", 64, lo=1)
+    chunks = str(r.get_raw("chunks", "all"))
+    out = r.get_optional_str("out")
+    merge = r.get_choice("merge", ("auto", "only", "never"), "auto")
+    r.finish()
+    spp = int(cfg.scene.integrator.spp)
+    path = Path(to_absolute_path(out)) if out else default_reference_path(cfg, spp)
+    return chunk_spp, chunks, path, merge
+
+
+def merge(cfg: DictConfig) -> Path:
+    """Merge the parts of ``cfg``'s reference into its EXR; returns its path."""
+    from nrc.evaluation.reference import read_reference
+    from nrc.evaluation.reference_parts import merge_parts
+
+    chunk_spp, _, out, _ = settings(cfg)
+    merge_parts(cfg, out, chunk_spp, int(cfg.scene.integrator.spp))
+    ref = read_reference(out)
+    print(f"wrote {out} ({ref.attrs['spp']} spp from {ref.attrs['parts']} part(s); rel_mse_floor: all "
+          f"{ref.attrs['rel_mse_floor']:.3g}, medium {ref.attrs['rel_mse_floor_medium']:.3g})")
+    return out
+
+
+def job(cfg: DictConfig, multirun: bool) -> None:
+    """Render this job's part (unless ``merge=only``), then merge when asked and every chunk is there."""
+    from nrc.evaluation.reference_parts import parse_chunks, part_path, render_part
+    from nrc.evaluation.reference import _chunk_count
+
+    absolute_paths(cfg)
+    apply_threads(cfg.get("threads", "auto"))
+    chunk_spp, chunks, out, when = settings(cfg)
+    spp = int(cfg.scene.integrator.spp)
+    if when != "only":
+        span = parse_chunks(chunks, _chunk_count(chunk_spp, spp))
+        render_part(cfg, out, chunk_spp, spp, span)
+        print(f"rendered chunks {span.start}:{span.stop} into {part_path(out, span)}")
+    if when == "only" or (when == "auto" and not multirun):
+        try:
+            merge(cfg)
+        except NRCError as exc:
+            if when == "only" or "misses" not in str(exc):
+                raise
+            print(f"not merged yet: {exc}")
+
+
+@hydra.main(config_path=CONF_DIR, config_name="reference", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> None:
+    try:
+        job(cfg, HydraConfig.get().mode == RunMode.MULTIRUN)
+    except NRCError as exc:
+        print(f"nrc.reference_app: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+class MergeAfterSweep(Callback):
+    """After a multirun of reference jobs (in the launching process, once every job has returned): merge their
+    parts, with ``reference.merge=auto``. The config is the sweep's: its swept keys (the chunk ranges) are not
+    needed to merge, and a sweep over anything else (two scenes) is not one reference: then nothing is merged."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        from nrc.app import sweep_jobs
+
+        jobs = sweep_jobs(config)
+        fixed = [[o for o in j if not o.startswith("reference.chunks=")] for j in jobs]
+        if not jobs or any(f != fixed[0] for f in fixed):
+            log.warning("the sweep varies more than reference.chunks: merge each reference with reference.merge=only")
+            return
+        cfg = OmegaConf.masked_copy(config, [k for k in config if k != "hydra"])  # a multirun's config: the
+        absolute_paths(cfg)  # overrides that are not swept, applied (the chunk ranges are not needed to merge)
+        try:
+            if settings(cfg)[3] == "auto":
+                merge(cfg)
+        except NRCError as exc:
+            print(f"nrc.reference_app: error: {exc}", file=sys.stderr)
+
+
+def main() -> None:
+    """Console-script entry point (``nrc-reference``)."""
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()

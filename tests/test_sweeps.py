@@ -1,0 +1,87 @@
+"""Sweeps that share a machine (``threads``, ``nrc.app.SweepSetup``): each job's thread count follows the
+launcher's jobs at once and lands in ``metrics.json``; the compiled step is built once, before the jobs, for
+that count."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from conftest import REPO
+from nrc import app
+from nrc.config import THREADS_ENV, job_threads
+from nrc.errors import ConfigError
+
+JOBLIB = "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
+LOCAL = "hydra_plugins.hydra_submitit_launcher.submitit_launcher.LocalLauncher"
+SLURM = "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
+BASIC = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
+
+
+@pytest.fixture
+def keep_threads():
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.mark.parametrize("target, n_jobs, jobs, cores, expected", [
+    (JOBLIB, 2, 4, 8, 2), (JOBLIB, -1, 4, 8, 4), (JOBLIB, -1, 16, 8, 8), (JOBLIB, -2, 16, 8, 7),
+    (JOBLIB, 3, 2, 8, 2), (LOCAL, None, 3, 8, 3), (SLURM, None, 3, 8, None), (BASIC, None, 3, 8, None),
+])
+def test_jobs_at_once_follow_the_launcher(target, n_jobs, jobs, cores, expected):
+    launcher = OmegaConf.create({"_target_": target, **({"n_jobs": n_jobs} if n_jobs is not None else {})})
+    assert app.concurrent_jobs(launcher, jobs, cores) == expected
+
+
+def test_threads_setting(monkeypatch):
+    monkeypatch.delenv(THREADS_ENV, raising=False)
+    monkeypatch.delenv("SLURM_CPUS_PER_TASK", raising=False)
+    assert job_threads("auto") == torch.get_num_threads() and job_threads(3) == 3
+    monkeypatch.setenv("SLURM_CPUS_PER_TASK", "6")
+    assert job_threads("auto") == 6
+    monkeypatch.setenv(THREADS_ENV, "2")
+    assert job_threads("auto") == 2 and job_threads(5) == 5  # an explicit count wins
+    for bad in (0, -1, "many", 1.5, True):
+        with pytest.raises(ConfigError, match="threads must be a positive integer or auto"):
+            job_threads(bad)
+
+
+def test_the_sweep_expands_to_its_jobs():
+    task = ["scene.integrator.spp=1,2", "encoding=hashgrid_oneblob,triangle_oneblob", "frames=3"]
+    jobs = app.sweep_jobs(OmegaConf.create({"hydra": {"overrides": {"task": task}}}))
+    assert len(jobs) == 4 and ["scene.integrator.spp=2", "encoding=triangle_oneblob", "frames=3"] in jobs
+
+
+def test_prebuild_compiles_each_job_at_its_thread_count(monkeypatch, keep_threads):
+    """The launching process renders the first job of each step structure tiny with the compiled backend at the
+    job's thread count (two encodings: one structure); eager jobs and bad configs are skipped, a reference job's own
+    keys dropped (the compile itself: the compiled-step tests)."""
+    built = []
+    monkeypatch.setattr(app, "execute", lambda cfg, out, progress: built.append(
+        (cfg.renderer.name, cfg.renderer.backend, cfg.threads, cfg.scene.camera.width, cfg.get("frames"))))
+    monkeypatch.setenv(THREADS_ENV, "1")
+    monkeypatch.setattr(app, "step_of", lambda cfg, real=app.step_of: (real(cfg)[0], False))  # none cached
+    app.prebuild_steps([["renderer=nrc", "encoding=triangle_oneblob"], ["renderer=nrc", "encoding=identity"],
+                        ["renderer=pt", "threads=2"],
+                        ["renderer=pt", "renderer.backend=eager"], ["scene.nope=1"],
+                        ["renderer=pt", "reference.chunks=0:4"]])
+    assert built == [("nrc", "compiled", 1, 8, 1), ("pt", "compiled", 2, 8, 1), ("pt", "compiled", 1, 8, 1)]
+
+
+@pytest.mark.slow
+def test_a_joblib_sweeps_workers_get_cores_over_jobs_threads(tmp_path):
+    cores = int(subprocess.run([sys.executable, "-c", "import torch; print(torch.get_num_threads())"],
+                               capture_output=True, text=True, check=True).stdout)
+    proc = subprocess.run([sys.executable, "-m", "nrc", "-m", "scene.integrator.seed=1,2", "hydra/launcher=joblib",
+                           "hydra.launcher.n_jobs=2", "renderer.backend=eager", "scene.camera.width=8",
+                           "scene.camera.height=4", "scene.volume.procedural.resolution=16", "denoise=none",
+                           f"hydra.sweep.dir={tmp_path}"], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    threads = [json.loads((tmp_path / str(i) / "metrics.json").read_text())["threads"] for i in range(2)]
+    assert threads == [max(1, cores // 2)] * 2
