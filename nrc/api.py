@@ -65,9 +65,7 @@ def _value(v: Any) -> str:
         return "null"
     if isinstance(v, (list, tuple)):
         return "[" + ",".join(_value(x) for x in v) + "]"
-    if isinstance(v, Path):
-        return str(v)
-    return str(v)
+    return str(v)  # numbers, strings, paths
 
 
 def as_overrides(overrides: Overrides) -> list[str]:

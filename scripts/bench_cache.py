@@ -115,14 +115,9 @@ def _fmt(points_per_s: float) -> str:
 
 
 def _machine(device: str) -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    from nrc.evaluation.speed_vs_error import cpu_model
+
+    cpu = cpu_model()
     gpu = f", GPU {torch.cuda.get_device_name()}" if device.startswith("cuda") else ""
     return (f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__} (intra-op threads: "
             f"{torch.get_num_threads()}){gpu}, "

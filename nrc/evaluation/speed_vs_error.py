@@ -766,16 +766,19 @@ def _cpu_count() -> int:
     return os.cpu_count() or 0
 
 
-def machine_type() -> str:
-    """What equal-time ratios depend on: the CPU model, its core count, the threads and the torch version (results
-    from machines of one type may be merged; a node's name is not part of it)."""
-    model = platform.processor() or platform.machine()
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what ``platform`` knows."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
+                return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    return f"{model}, {_cpu_count()} cores, {torch.get_num_threads()} threads, torch {torch.__version__}"
+    return platform.processor() or platform.machine()
+
+
+def machine_type() -> str:
+    """What equal-time ratios depend on: the CPU model, its core count, the threads and the torch version (results
+    from machines of one type may be merged; a node's name is not part of it)."""
+    return f"{cpu_model()}, {_cpu_count()} cores, {torch.get_num_threads()} threads, torch {torch.__version__}"
 
