@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shlex
 import sys
 import time
@@ -262,8 +263,6 @@ class SweepSetup(Callback):
     reports it) are skipped."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        import os
-
         import torch
 
         from nrc.config import THREADS_ENV
@@ -289,25 +288,53 @@ PREBUILD_OVERRIDES = ("scene.camera.width=8", "scene.camera.height=4", "scene.in
                       "denoise=none", "renderer.backend=compiled")
 
 
-def step_of(cfg: DictConfig) -> tuple[tuple[Any, ...], bool]:
+def step_of(cfg: DictConfig) -> tuple[tuple[Any, ...], bool, tuple[Path, ...] | None]:
     """The key of the transport step structure ``cfg``'s renderer compiles (one compiled step per key and thread
-    count), and whether its AOT packages for this process's thread count are in the cache already: its renderer
-    built, nothing rendered."""
+    count), whether its AOT packages for this process's thread count are in the cache already, and their files
+    (None where the step is not packaged): its renderer built, nothing rendered."""
     from nrc.render.registry import make_renderer
-    from nrc.render.wavefront.machine import packages_cached
+    from nrc.render.wavefront.machine import aot_packages, packages_cached
     from nrc.scene import load_scene
 
     device = resolve_device(cfg.device)
     renderer = make_renderer(cfg.renderer.name, load_scene(cfg.scene, device), cfg)
     core = renderer.core if hasattr(renderer, "core") else renderer.tracer.core
-    return core.step.key, packages_cached(core.step, core.steps_per_call, device)
+    return (core.step.key, packages_cached(core.step, core.steps_per_call, device),
+            aot_packages(core.step, core.steps_per_call, device))
+
+
+def _known_steps() -> tuple[Path, dict[str, list[str]]]:
+    """The sweeps' memory of which packages a job's config needs (``<compile cache>/nrc-aot/sweep-steps.json``:
+    a hash of the tiny config, the thread count, torch and the step's sources -> the package files), so that a
+    sweep run again finds its steps without building a renderer per job."""
+    from nrc.render.wavefront.machine import inductor_cache_dir
+
+    path = inductor_cache_dir() / "nrc-aot" / "sweep-steps.json"
+    try:
+        return path, json.loads(path.read_text())
+    except (OSError, ValueError):
+        return path, {}
+
+
+def _known_key(tiny: DictConfig, threads: int) -> str:
+    import hashlib
+
+    import torch
+
+    from nrc.render.wavefront.machine import _package_sources
+
+    text = OmegaConf.to_yaml(tiny, resolve=True) + repr((threads, torch.__version__, _package_sources()))
+    return hashlib.sha1(text.encode()).hexdigest()
 
 
 def prebuild_steps(jobs: list[list[str]]) -> None:
     """Build (or load) the compiled step of each structure the jobs use, at the job's thread count, by a tiny render
-    of the first job of each (:data:`PREBUILD_OVERRIDES`) in this process."""
+    of the first job of each (:data:`PREBUILD_OVERRIDES`) in this process. A job whose packages a previous sweep
+    recorded (:func:`_known_steps`) and which are still in the cache is skipped without building its renderer."""
     from nrc.config import apply_threads, compose, job_threads
 
+    memo_path, memo = _known_steps()
+    n_memo = len(memo)
     seen = set()
     for job in jobs:
         overrides = [o for o in job if not o.startswith("reference.")]  # a reference job's own keys: pt underneath
@@ -320,15 +347,26 @@ def prebuild_steps(jobs: list[list[str]]) -> None:
             threads = job_threads(cfg.get("threads", "auto"))
             tiny = compose([*overrides, *PREBUILD_OVERRIDES, f"threads={threads}"])
             absolute_paths(tiny)
+            known = _known_key(tiny, threads)
+            if memo.get(known) and all(Path(p).is_file() for p in memo[known]):
+                continue  # its packages are in the cache: a worker loads them
             apply_threads(threads)  # the packages are keyed by the thread count
-            key, cached = step_of(tiny)
-            if (key, threads) in seen:
-                continue
-            seen.add((key, threads))
-            if not cached:  # built by a tiny render (a cached one would only be loaded: nothing to do)
+            key, cached, paths = step_of(tiny)
+            if (key, threads) not in seen and not cached:  # built by a tiny render (a cached one: only loaded)
                 execute(tiny, None, progress=False)
+            seen.add((key, threads))
+            if paths is not None and all(p.is_file() for p in paths):
+                memo[known] = [str(p) for p in paths]
         except Exception as exc:  # noqa: BLE001 -- the job itself reports a bad config, in its own words
             log.info("sweep setup: no step built for %s (%s)", " ".join(overrides), exc)
+    if len(memo) != n_memo:
+        try:
+            memo_path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = memo_path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(json.dumps(memo, indent=1))
+            tmp.replace(memo_path)
+        except OSError as exc:  # a read-only cache: the next sweep builds the renderers again
+            log.info("sweep setup: could not record the steps (%s)", exc)
 
 
 def resume_command(out_dir: Path) -> str:
@@ -382,8 +420,6 @@ def run_dir_problem(argv: list[str]) -> str | None:
     """Why Hydra could not create the run (or sweep) directory named on the command line (or the default
     ``outputs/`` under the current directory), or ``None``; checked before Hydra starts, which would otherwise
     fail with a traceback."""
-    import os
-
     if any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--shell-completion", "-sc")
            or a.startswith(("--cfg=", "--info=")) for a in argv):
         return None  # nothing will be written

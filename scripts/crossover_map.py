@@ -11,6 +11,11 @@ albedo). Each point's own tables stay in ``<out>/<point>/``. A point whose ``sum
 (delete it to re-measure). Usage::
 
     python scripts/crossover_map.py --out docs/results/crossover_160x90 [--points d0.6,d5] [--width 160 --height 90]
+    python scripts/crossover_map.py --out docs/results/crossover_160x90_cold --cold-start 30
+
+**Cold start** (``--cold-start FRAMES``): instead of single frames at equal time per frame, a static camera from an
+empty cache: NRC's running mean after FRAMES frames against the path tracer's running mean (``--cold-pt-spp``-spp
+frames) at the same wall time, start-up (imports, scene, the step's load) counted on both sides, OIDN on both.
 
 **Points as jobs** (``--jobs local|slurm``, submitit, ``pip install -e '.[cluster]'``): each missing point runs as
 its own job, which holds the point's path tracer and NRC runs (equal-time ratios are valid only when both are timed
@@ -30,6 +35,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+from nrc.evaluation.jobs import check_one_machine_type, run_commands
 
 REPO = Path(__file__).resolve().parents[1]
 VDB = "../shared/data/wdas_cloud_sixteenth.vdb"  # relative to the repo root, where everything runs (results name no machine path)
@@ -58,38 +65,17 @@ def optical_depth(overrides: list[str]) -> dict:
             "density_scale": float(cfg.scene.volume.density_scale)}
 
 
-def pick(summary: dict, config: str, baseline: str) -> dict | None:
+def pick(summary: dict, config: str, baseline: str, cold: bool = False) -> dict | None:
     """The equal-time entry of ``config`` against ``baseline`` with the lowest floor-corrected ratio (over NRC's
-    spp per frame)."""
-    qs = [q for q in summary.get("equal_time", []) if q["config"] == config and q.get("baseline") == baseline]
+    spp per frame); ``cold``: the accumulated entry at NRC's last frame (equal wall time, start-up included)."""
+    mode = "accumulate" if cold else "single"
+    qs = [q for q in summary.get("equal_time", []) if q["config"] == config and q.get("baseline") == baseline
+          and q.get("mode", "single") == mode]
+    if cold:
+        return max(qs, key=lambda q: q["frames"]) if qs else None
     key = lambda q: q.get("ratio_rel_mse_medium_corr") if q.get("ratio_rel_mse_medium_corr") is not None \
         else float("inf")  # noqa: E731
     return min(qs, key=key) if qs else None
-
-
-def row_of(summary: dict, config: str) -> dict | None:
-    rows = [r for r in summary["rows"] if r["config"] == config and r["mode"] == "single"]
-    return rows[0] if rows else None
-
-
-def check_one_machine_type(summaries: dict[str, dict]) -> None:
-    """Refuse to put points measured on different machine types (CPU model, cores, threads, torch) in one map."""
-    kinds: dict[str, list[str]] = {}
-    for name, s in summaries.items():
-        meta = s.get("meta", {})
-        kinds.setdefault(meta.get("machine_type") or meta.get("machine") or "unknown", []).append(name)
-    if len(kinds) > 1:
-        raise SystemExit("crossover_map: the points were measured on different machine types, which equal-time "
-                         "ratios cannot mix: " + "; ".join(f"{', '.join(v)} on {k}" for k, v in kinds.items())
-                         + " (re-run the odd ones out on one type: delete their summary.json)")
-
-
-def _run_point(cmd: list[str]) -> str:
-    """One point's measurement, inside its job; returns the node it ran on."""
-    import platform
-
-    subprocess.run(cmd, cwd=REPO, check=True)
-    return platform.node()
 
 
 def run_jobs(todo: dict[str, list[str]], scenes: dict[str, tuple[list[str], int]], args: argparse.Namespace) -> None:
@@ -103,31 +89,7 @@ def run_jobs(todo: dict[str, list[str]], scenes: dict[str, tuple[list[str], int]
             raise SystemExit(f"crossover_map: point {name} has no reference {os.path.relpath(ref, REPO)}: render it "
                              f"first, e.g. python -m nrc.reference_app {' '.join(scene)} "
                              f"scene.integrator.spp={ref_spp} (docs/references.md)")
-    try:
-        import submitit
-    except ImportError:
-        raise SystemExit("crossover_map: --jobs needs submitit: pip install -e '.[cluster]'") from None
-    folder = args.out / ".jobs"
-    if args.jobs == "local":
-        executor = submitit.LocalExecutor(folder=folder)
-        executor.update_parameters(timeout_min=24 * 60)
-        for name, cmd in todo.items():  # one at a time: each job needs the machine to itself
-            job = executor.submit(_run_point, cmd)
-            print(f"[{name}] local job {job.job_id}", flush=True)
-            print(f"[{name}] done on {job.result()}", flush=True)
-        return
-    params: dict = {"slurm_exclusive": True, "timeout_min": 120}
-    generic = ("timeout_min", "cpus_per_task", "mem_gb", "nodes", "tasks_per_node", "name")
-    for item in args.slurm:
-        key, _, value = item.partition("=")
-        params[key if key in generic else f"slurm_{key}"] = int(value) if value.isdigit() else value
-    executor = submitit.AutoExecutor(folder=folder, cluster="slurm")
-    executor.update_parameters(**params)
-    jobs = {name: executor.submit(_run_point, cmd) for name, cmd in todo.items()}
-    for name, job in jobs.items():
-        print(f"[{name}] slurm job {job.job_id}", flush=True)
-    for name, job in jobs.items():
-        print(f"[{name}] done on {job.result()}", flush=True)
+    run_commands(todo, args.jobs, args.out / ".jobs", REPO, args.slurm)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -145,6 +107,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--nrc", default="renderer=nrc,renderer.backend=compiled", help="the NRC configuration's overrides")
     p.add_argument("--pt", default="renderer=pt,renderer.backend=compiled,transmittance=ratio",
                    help="the path tracer configuration's overrides")
+    p.add_argument("--cold-start", type=int, default=0, metavar="FRAMES",
+                   help="instead of single frames: the cold start at equal wall time, NRC's running mean after FRAMES "
+                        "frames from an empty cache against the path tracer's at the same time, start-up included")
+    p.add_argument("--cold-pt-spp", type=int, default=16, help="spp of each accumulated path-traced frame (cold start)")
+    p.add_argument("--cold-budget-s", type=float, default=60.0,
+                   help="seconds of rendering per configuration (cold start): the path tracer must outlast NRC")
     p.add_argument("--jobs", choices=["none", "local", "slurm"], default="none",
                    help="run each missing point as its own job (submitit): local, one at a time; slurm, a node each")
     p.add_argument("--slurm", action="append", default=[], metavar="KEY=VALUE",
@@ -162,11 +130,16 @@ def main(argv: list[str] | None = None) -> int:
         scene = ["scene=thick", f"scene.volume.path={VDB}", f"scene.camera.width={args.width}",
                  f"scene.camera.height={args.height}", *ovs, *extra]
         out = args.out / name
-        cmd = [sys.executable, str(REPO / "scripts" / "speed_vs_error.py"), "--mode", "single", "--denoise",
-               "--repeats", "2", "--configs", "", "--preset", "none", "--config", f"pt_compiled={args.pt}",
-               "--config", f"nrc={args.nrc}", "--pt-spp", args.pt_spp, "--warmup", str(args.warmup),
-               "--frames", str(args.frames), "--nrc-spp", args.nrc_spp, "--ref-spp", str(ref_spp),
-               "--out", os.path.relpath(out, REPO), "--quiet", *scene]
+        cmd = [sys.executable, str(REPO / "scripts" / "speed_vs_error.py"), "--denoise", "--configs", "", "--preset",
+               "none", "--config", f"pt_compiled={args.pt}", "--config", f"nrc={args.nrc}",
+               "--ref-spp", str(ref_spp), "--out", os.path.relpath(out, REPO), "--quiet"]
+        if args.cold_start:  # accumulated, static camera, start-up counted on both sides
+            cmd += ["--mode", "accumulate", "--acc-startup", "--acc-configs", "all", "--acc-repeats", "1",
+                    "--acc-nrc-frames", str(args.cold_start), "--acc-max-frames", "4096",
+                    "--acc-budget-s", str(args.cold_budget_s), "--acc-pt-spp", str(args.cold_pt_spp), *scene]
+        else:
+            cmd += ["--mode", "single", "--repeats", "2", "--pt-spp", args.pt_spp, "--warmup", str(args.warmup),
+                    "--frames", str(args.frames), "--nrc-spp", args.nrc_spp, *scene]
         points[name] = (scene, ref_spp, out, cmd)
     todo = {name: cmd for name, (_, _, out, cmd) in points.items() if not (out / "summary.json").is_file()}
     if args.jobs != "none" and todo:
@@ -178,14 +151,14 @@ def main(argv: list[str] | None = None) -> int:
             subprocess.run(cmd, cwd=REPO, check=True)
             print(f"[{name}] done in {time.perf_counter() - t0:.0f} s", flush=True)
     summaries = {name: json.loads((out / "summary.json").read_text()) for name, (_, _, out, _) in points.items()}
-    check_one_machine_type(summaries)
+    check_one_machine_type(summaries, "crossover_map")
     results = []
     for name, (scene, ref_spp, out, _) in points.items():
         s = summaries[name]
         res = {"point": name, "node": s["meta"].get("node"), "machine_type": s["meta"].get("machine_type"), **optical_depth(scene), "ref_spp": ref_spp,
                "rel_mse_floor_medium": s["meta"]["rel_mse_floor_medium"]}
         for key, cfg, base in (("raw", "nrc", "pt"), ("oidn", "nrc+oidn", "pt+oidn")):
-            q = pick(s, cfg, base)
+            q = pick(s, cfg, base, bool(args.cold_start))
             res[f"ratio_{key}"] = None if q is None else q.get("ratio_rel_mse_medium_corr")
             res[f"ratio_{key}_uncorrected"] = None if q is None else q.get("ratio_rel_mse_medium")
             res[f"pt_extrapolated_{key}"] = None if q is None else q.get("extrapolated")
@@ -195,27 +168,49 @@ def main(argv: list[str] | None = None) -> int:
             rows = [r for r in s["rows"] if r["config"] == cfg]
             if cfg.startswith("nrc") and res.get("nrc_spp_oidn") is not None:  # NRC at its best spp per frame
                 rows = [r for r in rows if r["spp"] == res["nrc_spp_oidn"]] or rows
-            if rows:
+            if not rows:
+                continue
+            if args.cold_start:  # NRC at its last frame, PT's running mean nearest NRC's time
+                t = res["time_frame_oidn_s"] or 0.0
+                fastest = max(rows, key=lambda r: r["frames"]) if cfg.startswith("nrc") else \
+                    min(rows, key=lambda r: abs(r["time_s"] - t))
+                res[f"{cfg}_frames"] = fastest["frames"]
+            else:
                 fastest = min(rows, key=lambda r: r["time_s"])
-                res[f"{cfg}_mean_ratio_medium"] = fastest.get("mean_ratio_medium")
-                res[f"{cfg}_rel_mse_medium"] = fastest.get("rel_mse_medium")
-                res[f"{cfg}_flicker_medium"] = fastest.get("flicker_medium")
-                res[f"{cfg}_time_s"] = fastest["time_s"]
+            res[f"{cfg}_mean_ratio_medium"] = fastest.get("mean_ratio_medium")
+            res[f"{cfg}_rel_mse_medium"] = fastest.get("rel_mse_medium")
+            res[f"{cfg}_flicker_medium"] = fastest.get("flicker_medium")
+            res[f"{cfg}_time_s"] = fastest["time_s"]
         results.append(res)
         print(json.dumps(res), flush=True)
     (args.out / "map.json").write_text(json.dumps({"argv": sys.argv[1:], "points": results}, indent=2))
-    lines = [f"{args.width} x {args.height}, equal time per frame after {args.warmup} NRC warm-up frames; ratios of "
-             "floor-corrected relMSE over the medium pixels (< 1: NRC better); PT = the compiled path tracer at 1-16 spp "
-             "(when NRC's frame is faster than PT's 1-spp frame, PT's 1-spp error is used: in PT's favour); "
-             "fastest-frame rows for the image mean and flicker.", "",
-             "| point | median tau | albedo | NRC / PT | NRC+OIDN / PT+OIDN (NRC spp) | NRC frame (s) | PT 1 spp (s) | "
-             "NRC mean / ref | flicker NRC / NRC+OIDN / PT / PT+OIDN | ref floor |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+    if args.cold_start:
+        lines = [f"{args.width} x {args.height}, **cold start at equal wall time**: NRC's running mean after "
+                 f"{args.cold_start} frames from an empty cache (a static camera) against the compiled path tracer's "
+                 f"running mean of {args.cold_pt_spp}-spp frames at the same time, start-up included on both sides "
+                 "(imports, scene, the warm-up frame: the step's load from the compile cache); OIDN on both sides "
+                 "for the +OIDN column, its time included; ratios of floor-corrected relMSE over the medium pixels "
+                 "(< 1: NRC better); PT interpolated log-log between its running means (slope -1 beyond them).", "",
+                 "| point | median tau | albedo | NRC / PT | NRC+OIDN / PT+OIDN | NRC whole time (s) | "
+                 "PT frames by then | NRC mean / ref | ref floor |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    else:
+        lines = [f"{args.width} x {args.height}, equal time per frame after {args.warmup} NRC warm-up frames; ratios "
+                 "of floor-corrected relMSE over the medium pixels (< 1: NRC better); PT = the compiled path tracer at "
+                 "1-16 spp (when NRC's frame is faster than PT's 1-spp frame, PT's 1-spp error is used: in PT's "
+                 "favour); fastest-frame rows for the image mean and flicker.", "",
+                 "| point | median tau | albedo | NRC / PT | NRC+OIDN / PT+OIDN (NRC spp) | NRC frame (s) | PT 1 spp "
+                 "(s) | NRC mean / ref | flicker NRC / NRC+OIDN / PT / PT+OIDN | ref floor |",
+                 "|---|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
 
     def f(x, n=3):
         return "–" if x is None else f"{x:.{n}g}"
 
     for r in sorted(results, key=lambda r: (r["albedo"], r["tau_median"])):
+        if args.cold_start:
+            lines.append(f"| {r['point']} | {r['tau_median']:.1f} | {r['albedo']:g} | {f(r['ratio_raw'])} | "
+                         f"{f(r['ratio_oidn'])} | {f(r.get('time_frame_oidn_s'))} | {r.get('pt_compiled+oidn_frames')} | "
+                         f"{f(r.get('nrc_mean_ratio_medium'))} | {f(r['rel_mse_floor_medium'], 2)} |")
+            continue
         lines.append(f"| {r['point']} | {r['tau_median']:.1f} | {r['albedo']:g} | {f(r['ratio_raw'])} | "
                      f"{f(r['ratio_oidn'])} ({r.get('nrc_spp_oidn')}) | {f(r.get('time_frame_oidn_s'))} | {f(r.get('pt_compiled_time_s'))} | "
                      f"{f(r.get('nrc_mean_ratio_medium'))} | {f(r.get('nrc_flicker_medium'), 2)} / "
@@ -239,7 +234,8 @@ def main(argv: list[str] | None = None) -> int:
             ax.loglog(*zip(*pts), ":s", color="grey", label="raw NRC / raw PT (all albedos)")
         ax.axhline(1.0, color="k", lw=0.8)
         ax.set_xlabel("median optical depth of the camera rays that see the medium")
-        ax.set_ylabel("relMSE ratio at equal time per frame")
+        ax.set_ylabel("relMSE ratio at equal wall time (cold start)" if args.cold_start
+                      else "relMSE ratio at equal time per frame")
         ax.set_title(f"Where NRC pays off ({args.width} x {args.height}); below 1: NRC wins")
         ax.grid(True, which="both", lw=0.3)
         ax.legend(fontsize=7)

@@ -18,12 +18,33 @@ TINY = ["--points", "d0.35", "--width", "12", "--height", "8", "--warmup", "2", 
 
 
 def test_mixed_machine_types_are_refused():
-    cm = load_script("crossover_map")
+    from nrc.evaluation.jobs import check_one_machine_type
+
     one = {"meta": {"machine_type": "CPU A, 2 cores, 2 threads, torch 2.13.0"}}
     other = {"meta": {"machine_type": "CPU B, 32 cores, 32 threads, torch 2.13.0"}}
-    cm.check_one_machine_type({"d2": one, "d5": one})
-    with pytest.raises(SystemExit, match=r"d2, d5 on CPU A.*; d10 on CPU B"):
-        cm.check_one_machine_type({"d2": one, "d5": one, "d10": other})
+    check_one_machine_type({"d2": one, "d5": one}, "crossover_map")
+    with pytest.raises(SystemExit, match=r"crossover_map: .*d2, d5 on CPU A.*; d10 on CPU B"):
+        check_one_machine_type({"d2": one, "d5": one, "d10": other}, "crossover_map")
+
+
+def test_slurm_parameters_and_bad_ones():
+    from nrc.evaluation.jobs import run_commands, slurm_parameters
+
+    assert slurm_parameters(["partition=cpu", "cpus_per_task=32", "timeout_min=30"]) == {
+        "slurm_exclusive": True, "timeout_min": 30, "slurm_partition": "cpu", "cpus_per_task": 32}
+    with pytest.raises(SystemExit, match="--slurm 'partition': expected KEY=VALUE"):
+        slurm_parameters(["partition"])
+    with pytest.raises(SystemExit, match="unknown kind 'pbs'"):
+        run_commands({"a": ["true"]}, "pbs", REPO / "outputs", REPO)
+
+
+def test_the_cold_start_picks_nrc_at_its_last_frame():
+    cm = load_script("crossover_map")
+    eq = [{"config": "nrc+oidn", "baseline": "pt+oidn", "mode": "single", "frames": 1, "ratio_rel_mse_medium_corr": 0.5},
+          *({"config": "nrc+oidn", "baseline": "pt+oidn", "mode": "accumulate", "frames": n,
+             "ratio_rel_mse_medium_corr": r} for n, r in ((16, 0.9), (30, 1.2), (8, 0.7)))]
+    assert cm.pick({"equal_time": eq}, "nrc+oidn", "pt+oidn")["mode"] == "single"
+    assert cm.pick({"equal_time": eq}, "nrc+oidn", "pt+oidn", cold=True)["frames"] == 30
 
 
 def crossover(tmp_path, *args):

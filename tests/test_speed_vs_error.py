@@ -107,7 +107,9 @@ def test_smoke_two_configs_both_modes(sve, cli, tmp_path):
     (out / "speed_vs_error.md").unlink()
     assert cli.main(["--replot", str(out)]) == 0 and (out / "speed_vs_error.md").read_text() == md
     if nrc_available():
-        assert len(summary["equal_time"]) == 1 and summary["equal_time"][0]["ratio_rel_mse"] > 0
+        single = [q for q in summary["equal_time"] if q["mode"] == "single"]
+        assert len(single) == 1 and single[0]["ratio_rel_mse"] > 0
+        assert [q["frames"] for q in summary["equal_time"] if q["mode"] == "accumulate"] == [1, 2]
         assert len(summary["equal_cpu_time"]) == 1 and summary["equal_cpu_time"][0]["ratio_rel_mse"] > 0
         assert "Equal time per frame" in md
 
@@ -184,3 +186,62 @@ def test_animation_whole_run_smoke(tmp_path):
     assert pt2["rel_mse_medium"] < pt1["rel_mse_medium"] * 1.5
     assert nrc["ratio_vs_pt"] == pytest.approx(nrc["rel_mse_medium"] / nrc["pt_rel_mse_medium"])
     assert "whole run" in animation.markdown(res)
+
+
+def test_checkpoints_end_at_the_last_frame_and_accumulated_ratios(sve):
+    assert sve.checkpoints(8) == [1, 2, 4, 8] and sve.checkpoints(30) == [1, 2, 4, 8, 16, 30]
+    pt = [{"mode": "accumulate", "config": "pt", "renderer": "pt", "spp": 16, "frames": n, "time_s": 2.0 * n,
+           "rel_mse": 1.0 / n} for n in (1, 2, 4, 8)]
+    nrc = [{"mode": "accumulate", "config": "nrc", "renderer": "nrc", "spp": 1, "frames": 30, "time_s": 4.0,
+            "rel_mse": 0.25}]
+    assert sve.equal_time_ratios(pt + nrc, "pt") == []  # single frames only by default
+    (q,) = sve.equal_time_ratios(pt + nrc, "pt", mode="accumulate")
+    assert (q["mode"], q["frames"]) == ("accumulate", 30)
+    assert q["pt_rel_mse"] == pytest.approx(0.5) and q["ratio_rel_mse"] == pytest.approx(0.5)
+    assert [q["mode"] for q in sve.all_ratios(pt + nrc, ["pt"])] == ["accumulate"]
+
+
+def test_since_process_start_counts_the_imports(sve):
+    t = sve.since_process_start()
+    assert 0 < t < 24 * 3600  # this process started before the test (its imports take a while)
+
+
+def test_jobs_arguments_are_stripped_from_the_jobs_command(sve):
+    argv = ["--out", "o", "--jobs", "slurm", "--slurm", "partition=cpu", "--slurm=mem_gb=4", "--jobs=local", "x=1"]
+    assert sve._without_jobs(argv) == ["--out", "o", "x=1"]
+    assert sve.part_path("o", "pt") == __import__("pathlib").Path("o/configs/pt.json")
+
+
+@pytest.mark.slow
+def test_configurations_as_local_jobs_merge_like_one_process(sve, cli, tmp_path):
+    """--jobs local: each configuration a submitit job writing its rows; the merge writes the tables of one
+    process (both configurations, ratios against the path tracer), a configuration's rows are not re-run, and rows
+    of another machine type are refused."""
+    pytest.importorskip("submitit")
+    from conftest import compose
+    from nrc.evaluation.reference import render_reference
+
+    render_reference(compose(TINY + ["scene.integrator.seed=1000000"]), tmp_path / "ref.exr", 8, 16, progress=False)
+    argv = ["--preset", "none", "--out", str(tmp_path / "out"), "--reference", str(tmp_path / "ref.exr"),
+            "--configs", "pt", "--config", "pt_track=renderer=pt,transmittance=track_length", "--mode", "accumulate",
+            "--acc-max-frames", "2", "--acc-repeats", "1", "--acc-pt-spp", "1", "--acc-configs", "all",
+            "--acc-startup", "--quiet", "--threads", "1", "--jobs", "local", *TINY]
+    assert cli.main(argv) == 0
+    out = tmp_path / "out"
+    parts = {p.stem: json.loads(p.read_text()) for p in (out / "configs").glob("*.json")}
+    assert set(parts) == {"pt", "pt_track"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["meta"]["jobs"] == "local" and set(summary["meta"]["nodes"]) == {"pt", "pt_track"}
+    assert "threads" in summary["meta"]["machine_type"]
+    assert {(r["config"], r["frames"]) for r in summary["rows"]} == {(c, n) for c in ("pt", "pt_track") for n in (1, 2)}
+    for r in summary["rows"]:  # start-up counted: the process's imports and the warm-up, then the render
+        assert r["startup_counted"] and r["time_s"] == pytest.approx(r["render_s"] + r["startup_s"]
+                                                                     + r["process_startup_s"])
+        assert r["process_startup_s"] > 0
+    assert "start-up included" in (out / "speed_vs_error.md").read_text()
+    before = (out / "configs" / "pt.json").stat().st_mtime_ns
+    parts["pt_track"]["meta"]["machine_type"] = "another CPU"
+    (out / "configs" / "pt_track.json").write_text(json.dumps(parts["pt_track"]))
+    with pytest.raises(SystemExit, match="speed_vs_error: .*pt_track on another CPU"):
+        cli.main(argv)
+    assert (out / "configs" / "pt.json").stat().st_mtime_ns == before  # not run again

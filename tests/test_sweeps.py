@@ -66,12 +66,40 @@ def test_prebuild_compiles_each_job_at_its_thread_count(monkeypatch, keep_thread
     monkeypatch.setattr(app, "execute", lambda cfg, out, progress: built.append(
         (cfg.renderer.name, cfg.renderer.backend, cfg.threads, cfg.scene.camera.width, cfg.get("frames"))))
     monkeypatch.setenv(THREADS_ENV, "1")
-    monkeypatch.setattr(app, "step_of", lambda cfg, real=app.step_of: (real(cfg)[0], False))  # none cached
+    monkeypatch.setattr(app, "step_of", lambda cfg, real=app.step_of: (real(cfg)[0], False, None))  # none cached
     app.prebuild_steps([["renderer=nrc", "encoding=triangle_oneblob"], ["renderer=nrc", "encoding=identity"],
                         ["renderer=pt", "threads=2"],
                         ["renderer=pt", "renderer.backend=eager"], ["scene.nope=1"],
                         ["renderer=pt", "reference.chunks=0:4"]])
     assert built == [("nrc", "compiled", 1, 8, 1), ("pt", "compiled", 2, 8, 1), ("pt", "compiled", 1, 8, 1)]
+
+
+def test_a_sweep_run_again_finds_its_steps_without_building_renderers(monkeypatch, keep_threads, tmp_path):
+    """The packages a job needs are recorded after the first sweep; the next sweep checks their files instead of
+    building each job's renderer, and builds again when a file is gone."""
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv(THREADS_ENV, "1")
+    package = tmp_path / "nrc-aot" / "x-track.pt2"
+    package.parent.mkdir(parents=True)
+    package.write_bytes(b"")
+    calls = []
+
+    def step_of(cfg):
+        calls.append(cfg.renderer.name)
+        return ("key",), True, (package,)
+
+    monkeypatch.setattr(app, "step_of", step_of)
+    monkeypatch.setattr(app, "execute", lambda *a, **k: pytest.fail("nothing to build: all cached"))
+    jobs = [["renderer=pt"], ["renderer=pt", "scene.volume.albedo=0.5"]]
+    app.prebuild_steps(jobs)
+    assert calls == ["pt", "pt"]  # two configs, one structure: both recorded
+    memo = json.loads((tmp_path / "nrc-aot" / "sweep-steps.json").read_text())
+    assert list(memo.values()) == [[str(package)], [str(package)]]
+    app.prebuild_steps(jobs)
+    assert calls == ["pt", "pt"]  # the second sweep built no renderer
+    package.unlink()
+    app.prebuild_steps(jobs[:1])
+    assert calls == ["pt", "pt", "pt"]  # a package gone: the renderer is built to find out
 
 
 @pytest.mark.slow

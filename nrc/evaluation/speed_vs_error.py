@@ -45,6 +45,7 @@ import dataclasses
 import json
 import math
 import platform
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -299,33 +300,40 @@ def all_ratios(rows: list[dict[str, Any]], baseline: list[str] | None, clock: st
         return []
     raw = [r for r in rows if not r.get("denoised")]
     den = [r for r in rows if r.get("denoised")]
-    out = [{**q, "baseline": "pt"} for q in equal_time_ratios(raw, baseline, clock)]
     den_base = [b + DENOISED for b in baseline]
-    if any(r["config"] in den_base for r in den):
-        pt_den = [r for r in den if r["renderer"] == "pt"]
-        nrc_raw = [r for r in raw if r["renderer"] != "pt"]
-        out += [{**q, "baseline": "pt" + DENOISED} for q in equal_time_ratios(den, den_base, clock)]
-        out += [{**q, "baseline": "pt" + DENOISED} for q in equal_time_ratios(pt_den + nrc_raw, den_base, clock)]
+    pt_den = [r for r in den if r["renderer"] == "pt"]
+    nrc_raw = [r for r in raw if r["renderer"] != "pt"]
+    out = []
+    for mode in ("single", "accumulate"):
+        out += [{**q, "baseline": "pt"} for q in equal_time_ratios(raw, baseline, clock, mode)]
+        if any(r["config"] in den_base for r in den):
+            out += [{**q, "baseline": "pt" + DENOISED} for q in equal_time_ratios(den, den_base, clock, mode)]
+            out += [{**q, "baseline": "pt" + DENOISED}
+                    for q in equal_time_ratios(pt_den + nrc_raw, den_base, clock, mode)]
     return out
 
 
 def checkpoints(n_max: int) -> list[int]:
+    """1, 2, 4, ... up to ``n_max``, and ``n_max`` itself (e.g. 30 frames: ..., 16, 30)."""
     out, n = [], 1
     while n <= n_max:
         out.append(n)
         n *= 2
-    return out
+    return out if out[-1] == n_max else out + [n_max]
 
 
 def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
     """Error of the running mean at 1, 2, 4, ... frames; ``acc_repeats`` independent sequences."""
-    marks = checkpoints(args.acc_max_frames)
+    nrc_frames = getattr(args, "acc_nrc_frames", None) or args.acc_max_frames
+    marks = sorted(set(checkpoints(args.acc_max_frames)) | (set() if cfg.renderer.name == "pt" else {nrc_frames}))
     seqs: list[dict[int, tuple[float, np.ndarray]]] = []  # per repeat: frames -> (cumulative time, mean)
     for rep in range(args.acc_repeats):
         rec: dict[int, tuple[float, np.ndarray]] = {}
         if cfg.renderer.name == "pt":
             if rep == 0:
+                t0 = time.perf_counter()
                 pt_warmup(scene, cfg)
+                startup = time.perf_counter() - t0
             total, t_cum = None, 0.0
             for i in range(args.acc_max_frames):
                 img, dt = pt_render(scene, cfg, args.acc_pt_spp, SEED_BASE + 10_000 * (rep + 1) + i)
@@ -351,7 +359,7 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
                     raise Stop
 
             try:
-                nrc_run(scene, cfg, args.acc_nrc_spp, SEED_BASE + 20_000 * (rep + 1), args.acc_max_frames, True, cb)
+                nrc_run(scene, cfg, args.acc_nrc_spp, SEED_BASE + 20_000 * (rep + 1), nrc_frames, True, cb)
             except Stop:
                 pass
         seqs.append(rec)
@@ -359,10 +367,12 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
     common = sorted(set.intersection(*(set(r) for r in seqs)))
     for n in common:
         spp = args.acc_pt_spp if cfg.renderer.name == "pt" else args.acc_nrc_spp
+        render_s = float(np.mean([r[n][0] for r in seqs]))
+        # the warm-up (compile or cache load, 16 x 9), and with --acc-startup the process's own start-up too
         row = {"mode": "accumulate", "config": name, "renderer": cfg.renderer.name, "spp": spp, "frames": n,
-               "time_s": float(np.mean([r[n][0] for r in seqs])), **scorer.score([r[n][1] for r in seqs])}
-        if cfg.renderer.name != "pt":
-            row["startup_s"] = startup  # the untimed warm-up (compile or cache load, 16 x 9)
+               "render_s": render_s, "startup_s": startup, "process_startup_s": args.process_startup_s,
+               "time_s": render_s + (startup + args.process_startup_s if args.acc_startup else 0.0),
+               "startup_counted": bool(args.acc_startup), **scorer.score([r[n][1] for r in seqs])}
         rows.append(row)
         log(row)
         if args.denoise:  # the running mean denoised at this point (its time + one denoise)
@@ -441,27 +451,30 @@ def baseline_error(points: list[tuple[float, float]], t: float) -> float:
     return loglog_interp(t, [f[0] for f in front], [f[1] for f in front])
 
 
-def equal_time_ratios(rows: list[dict[str, Any]], baseline: str | list[str], clock: str = "time_s") -> list[dict[str, Any]]:
+def equal_time_ratios(rows: list[dict[str, Any]], baseline: str | list[str], clock: str = "time_s",
+                      mode: str = "single") -> list[dict[str, Any]]:
     """NRC single-frame points against the baseline path tracers at the same time per frame: the Pareto front of
     all their points (the best path-tracer error measured at that time, whichever configuration reached it).
     Between the front's slowest point and the slowest measured point the front is flat (spending that time was
     measured not to help); beyond every measured point it is extrapolated (:func:`loglog_interp`).
 
     ``clock``: ``time_s`` (wall time) or ``cpu_s`` (process CPU time, all threads: less sensitive to other
-    jobs on a shared machine).
+    jobs on a shared machine). ``mode="accumulate"``: the running means of a static camera at equal cumulative
+    time instead (the path tracers' accumulated points against each NRC point; with ``--acc-startup`` both
+    times count their start-up: the cold-start comparison).
     """
     if clock != "time_s":
         sel = [r for r in rows if r.get(clock) is not None]
-        return equal_time_ratios([{**r, "time_s": r[clock]} for r in sel], baseline) if sel else []
+        return equal_time_ratios([{**r, "time_s": r[clock]} for r in sel], baseline, mode=mode) if sel else []
     names = baseline_names(baseline)
-    base = [r for r in rows if r["mode"] == "single" and r["config"] in names]
+    base = [r for r in rows if r["mode"] == mode and r["config"] in names]
     out = []
     if len(base) == 0:
         return out
     for r in rows:
-        if r["mode"] != "single" or r["renderer"] == "pt":
+        if r["mode"] != mode or r["renderer"] == "pt":
             continue
-        item = {"config": r["config"], "spp": r["spp"], "time_s": r["time_s"]}
+        item = {"config": r["config"], "mode": mode, "spp": r["spp"], "frames": r.get("frames", 1), "time_s": r["time_s"]}
         for key in ("rel_mse", "rel_mse_medium", "rel_mse_corr", "rel_mse_medium_corr"):
             if r.get(key) is None or any(b.get(key) is None or b[key] <= 0 for b in base) or r[key] <= 0:
                 continue
@@ -558,10 +571,14 @@ def markdown(rows, ratios, cross, meta) -> str:
              "pixels over the reference's mean there, for consecutive frames of the static camera (NRC's scored "
              "frames in order; pt's independent renders).", ""]
     for mode, title in (("single", "Single frames (time = wall time per frame)"),
-                        ("accumulate", "Accumulated frames, static camera (time = cumulative wall time)")):
+                        ("accumulate", "Accumulated frames, static camera (time = cumulative wall time")):
         sel = [r for r in rows if r["mode"] == mode]
         if not sel:
             continue
+        if mode == "accumulate":
+            title += (", start-up included: the process's imports, scene and reference load and each configuration's "
+                      "warm-up frame, i.e. the compile or its load from the cache)"
+                      if any(r.get("startup_counted") for r in sel) else ")")
         lines += [f"**{title}**", "",
                   "| config | spp/frame | frames | time (s) | CPU time (s) | relMSE medium | relMSE all | "
                   "relMSE medium, normalised | mean / reference, medium | rel. bias medium | rel. variance medium "
@@ -580,13 +597,15 @@ def markdown(rows, ratios, cross, meta) -> str:
                   "interpolated (log-log) at the NRC time per frame (between the front's slowest point and PT's slowest "
                   "measured frame flat: that time was measured not to help; beyond every measured frame extrapolated with "
                   "relMSE ~ 1/time; below its fastest frame, PT's fastest frame's error: a frame cannot take less than "
-                  "PT's smallest spp).", "",
+                  "PT's smallest spp). Accumulated rows (a static camera): the running means at equal cumulative "
+                  "time, start-up included where the accumulated table says so.", "",
                   "The corrected ratio subtracts the reference's noise floor from both relMSEs first.", "",
                   "| config | against | spp/frame | time/frame (s) | NRC relMSE medium | PT relMSE medium at equal "
                   "time | ratio medium | ratio all | ratio medium, floor-corrected | PT extrapolated |",
                   "|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
         for q in ratios:
-            lines.append(f"| {q['config']} | {q.get('baseline', 'pt')} | {q['spp']} | {q['time_s']:.3g} | "
+            what = q["config"] + (f" (accumulated, {q['frames']} frames)" if q.get("mode") == "accumulate" else "")
+            lines.append(f"| {what} | {q.get('baseline', 'pt')} | {q['spp']} | {q['time_s']:.3g} | "
                          f"{fmt(q.get('pt_rel_mse_medium') and q['ratio_rel_mse_medium'] * q['pt_rel_mse_medium'])} | "
                          f"{fmt(q.get('pt_rel_mse_medium'))} | {fmt(q.get('ratio_rel_mse_medium'), 2)} | "
                          f"{fmt(q.get('ratio_rel_mse'), 2)} | {fmt(q.get('ratio_rel_mse_medium_corr'), 2)} | "
@@ -680,9 +699,19 @@ def run(args: Any, overrides: list[str], argv: list[str]) -> int:
 
     start = time.perf_counter()
     configs = parse_configs(args.configs, args.config)
+    if args.only:
+        if args.only not in configs:
+            raise SystemExit(f"speed_vs_error: --only {args.only!r} is not one of the configurations "
+                             f"({', '.join(configs)})")
+        configs = {args.only: configs[args.only]}
     base_cfg = compose(args.scene_overrides)
+    if args.jobs != "none" and not args.only:
+        return run_as_jobs(args, argv, configs, base_cfg, log)
+    startup = since_process_start()
     ref_path, ref = get_reference(base_cfg, args, log)
+    t0 = time.perf_counter()
     scene = load_scene(base_cfg.scene, resolve_device(base_cfg.device))
+    args.process_startup_s = startup + time.perf_counter() - t0  # imports, config, scene (not a reference render)
     cam = scene.camera
     if ref.image.shape != (cam.height, cam.width, 3):
         raise SystemExit(f"speed_vs_error: reference {ref_path} is {ref.image.shape}, scene is {cam.height}x{cam.width}")
@@ -713,7 +742,14 @@ def run(args: Any, overrides: list[str], argv: list[str]) -> int:
         }
         add_corrected(rows, ref.rel_mse_floor, ref.rel_mse_floor_medium)
         ratios = all_ratios(rows, baseline)
-        write_outputs(args.out, rows, ratios, cross, meta)
+        if args.only:  # one configuration of a run as jobs: its rows only, merged by the parent
+            part = part_path(args.out, args.only)
+            part.parent.mkdir(parents=True, exist_ok=True)
+            tmp = part.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+            tmp.replace(part)
+        else:
+            write_outputs(args.out, rows, ratios, cross, meta)
         return meta, ratios, cross
 
     for name, ovs in configs.items():
@@ -737,6 +773,73 @@ def run(args: Any, overrides: list[str], argv: list[str]) -> int:
         log(f"crossover {c['config']} vs {c.get('baseline', baseline)}: {fmt(c['crossover_time_s'])} s")
     log(f"wrote {args.out}/speed_vs_error.{{csv,md,png}} and summary.json in {meta['wall_time_s']:.0f} s")
     return 0
+
+
+def part_path(out: Path, name: str) -> Path:
+    """Where the job of configuration ``name`` writes its rows (``--jobs``)."""
+    return Path(out) / "configs" / f"{name}.json"
+
+
+def _without_jobs(argv: list[str]) -> list[str]:
+    """``argv`` without ``--jobs`` / ``--slurm`` and their values."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a in ("--jobs", "--slurm"):
+            skip = True
+        elif not a.startswith(("--jobs=", "--slurm=")):
+            out.append(a)
+    return out
+
+
+def run_as_jobs(args: Any, argv: list[str], configs: dict[str, list[str]], base_cfg, log) -> int:
+    """``--jobs local|slurm``: each configuration as its own launcher job (:mod:`nrc.evaluation.jobs`), which
+    writes its rows to :func:`part_path`; then the tables, ratios and plot of the rows together, as one process
+    would write them, refusing rows from different machine types. A configuration whose rows exist is not run
+    again (delete them to re-measure). The reference is rendered first, here (``local``), or must exist
+    (``slurm``: ``python -m nrc.reference_app``, docs/references.md)."""
+    from nrc.evaluation.jobs import check_one_machine_type, run_commands
+
+    start = time.perf_counter()
+    path = args.reference or default_reference_path(base_cfg, args.ref_spp)
+    if args.jobs == "slurm" and not path.is_file():
+        raise SystemExit(f"speed_vs_error: no reference {path}: render it first, e.g. python -m nrc.reference_app "
+                         f"{' '.join(args.scene_overrides)} scene.integrator.spp={args.ref_spp} (docs/references.md)")
+    ref_path, ref = get_reference(base_cfg, args, log)
+    script = REPO / "scripts" / "speed_vs_error.py"
+    todo = {name: [sys.executable, str(script), *_without_jobs(argv), "--only", name]
+            for name in configs if not part_path(args.out, name).is_file()}
+    nodes = run_commands(todo, args.jobs, Path(args.out) / ".jobs", REPO, args.slurm) if todo else {}
+    parts = {name: json.loads(part_path(args.out, name).read_text()) for name in configs}
+    check_one_machine_type(parts, "speed_vs_error")
+    rows = [r for p in parts.values() for r in p["rows"]]
+    baseline = list(dict.fromkeys(r["config"] for r in rows if r["renderer"] == "pt" and not r.get("denoised"))) or None
+    first = next(iter(parts.values()))["meta"]
+    meta = {**first, "argv": argv, "baseline": baseline, "skipped": [s for p in parts.values() for s in p["meta"]["skipped"]],
+            "nodes": {name: p["meta"].get("node") for name, p in parts.items()},
+            "jobs": args.jobs, "wall_time_s": time.perf_counter() - start,
+            "job_wall_time_s": {name: p["meta"]["wall_time_s"] for name, p in parts.items()}}
+    meta["reference"] = str(ref_path.relative_to(REPO) if ref_path.is_relative_to(REPO) else ref_path)
+    meta["node"] = ", ".join(dict.fromkeys(str(n) for n in meta["nodes"].values()))
+    add_corrected(rows, ref.rel_mse_floor, ref.rel_mse_floor_medium)
+    write_outputs(args.out, rows, all_ratios(rows, baseline), all_crossovers(rows, baseline), meta)
+    log(f"merged {len(parts)} configurations ({len(todo)} run now{', on ' + meta['node'] if nodes else ''}) "
+        f"into {args.out}/summary.json")
+    return 0
+
+
+def since_process_start() -> float:
+    """Seconds since this process started (Linux ``/proc``; else 0): its imports, which a user waits for too."""
+    import os
+
+    try:
+        ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime"))
+        return max(0.0, time.time() - (boot + ticks / os.sysconf("SC_CLK_TCK")))
+    except (OSError, ValueError, IndexError, StopIteration):
+        return 0.0
 
 
 def replot(out: Path) -> int:
