@@ -33,6 +33,12 @@ log = logging.getLogger("nrc")
 
 def settings(cfg: DictConfig) -> tuple[int, str, Path, str]:
     """``(chunk_spp, chunks, out, merge)`` of the ``reference`` block (unknown keys refused)."""
+    return _settings(cfg)[:4]
+
+
+def _settings(cfg: DictConfig) -> tuple[int, str, Path, str, float | None, bool]:
+    """:func:`settings`, the ``rel_mse_floor`` target (``None``: render every chunk) and whether ``out`` was
+    given."""
     from hydra.utils import to_absolute_path
 
     from nrc.evaluation.reference import default_reference_path
@@ -42,19 +48,25 @@ def settings(cfg: DictConfig) -> tuple[int, str, Path, str]:
     chunks = str(r.get_raw("chunks", "all"))
     out = r.get_optional_str("out")
     merge = r.get_choice("merge", ("auto", "only", "never"), "auto")
+    floor = r.get_float("rel_mse_floor", None, lo=0.0, lo_open=True)
     r.finish()
     spp = int(cfg.scene.integrator.spp)
     path = Path(to_absolute_path(out)) if out else default_reference_path(cfg, spp)
-    return chunk_spp, chunks, path, merge
+    return chunk_spp, chunks, path, merge, floor, out is not None
 
 
 def merge(cfg: DictConfig) -> Path:
-    """Merge the parts of ``cfg``'s reference into its EXR; returns its path."""
-    from nrc.evaluation.reference import read_reference
-    from nrc.evaluation.reference_parts import merge_parts
+    """Merge the parts of ``cfg``'s reference into its EXR; returns its path. With ``reference.rel_mse_floor`` the
+    chunks there are merged once they reach it, into the EXR named by their spp (``reference.out`` if given)."""
+    from nrc.evaluation.reference import default_reference_path, read_reference
+    from nrc.evaluation.reference_parts import merge_parts, merge_to_floor
 
-    chunk_spp, _, out, _ = settings(cfg)
-    merge_parts(cfg, out, chunk_spp, int(cfg.scene.integrator.spp))
+    chunk_spp, _, out, _, floor, named = _settings(cfg)
+    if floor is None:
+        merge_parts(cfg, out, chunk_spp, int(cfg.scene.integrator.spp))
+    else:
+        out = merge_to_floor(cfg, out, chunk_spp, int(cfg.scene.integrator.spp), floor,
+                             lambda spp: out if named else default_reference_path(cfg, spp))
     ref = read_reference(out)
     print(f"wrote {out} ({ref.attrs['spp']} spp from {ref.attrs['parts']} part(s); rel_mse_floor: all "
           f"{ref.attrs['rel_mse_floor']:.3g}, medium {ref.attrs['rel_mse_floor_medium']:.3g})")
@@ -68,17 +80,19 @@ def job(cfg: DictConfig, multirun: bool) -> None:
 
     absolute_paths(cfg)
     apply_threads(cfg.get("threads", "auto"))
-    chunk_spp, chunks, out, when = settings(cfg)
+    chunk_spp, chunks, out, when, floor, _ = _settings(cfg)
     spp = int(cfg.scene.integrator.spp)
     if when != "only":
-        span = parse_chunks(chunks, _chunk_count(chunk_spp, spp))
-        render_part(cfg, out, chunk_spp, spp, span)
-        print(f"rendered chunks {span.start}:{span.stop} into {part_path(out, span)}")
+        n_chunks = _chunk_count(chunk_spp, spp)
+        span = parse_chunks(chunks, n_chunks)
+        # a floor target stops one process early; a range among several jobs renders whole (the merge stops)
+        part = render_part(cfg, out, chunk_spp, spp, span, floor_target=floor if len(span) == n_chunks else None)
+        print(f"rendered chunks {part.first}:{part.first + part.done} into {part_path(out, span)}")
     if when == "only" or (when == "auto" and not multirun):
         try:
             merge(cfg)
         except NRCError as exc:
-            if when == "only" or "misses" not in str(exc):
+            if when == "only" or not ("misses" in str(exc) or "chunks are needed" in str(exc)):
                 raise
             print(f"not merged yet: {exc}")
 

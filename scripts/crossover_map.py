@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
                "none", "--config", f"pt_compiled={args.pt}", "--config", f"nrc={args.nrc}",
                "--ref-spp", str(ref_spp), "--out", os.path.relpath(out, REPO), "--quiet"]
         if args.cold_start:  # accumulated, static camera, start-up counted on both sides
-            cmd += ["--mode", "accumulate", "--acc-startup", "--acc-configs", "all", "--acc-repeats", "1",
+            cmd += ["--mode", "accumulate", "--acc-startup", "--acc-nrc-last", "--acc-configs", "all", "--acc-repeats", "1",
                     "--acc-nrc-frames", str(args.cold_start), "--acc-max-frames", "4096",
                     "--acc-budget-s", str(args.cold_budget_s), "--acc-pt-spp", str(args.cold_pt_spp), *scene]
         else:
@@ -157,14 +157,17 @@ def main(argv: list[str] | None = None) -> int:
         s = summaries[name]
         res = {"point": name, "node": s["meta"].get("node"), "machine_type": s["meta"].get("machine_type"), **optical_depth(scene), "ref_spp": ref_spp,
                "rel_mse_floor_medium": s["meta"]["rel_mse_floor_medium"]}
-        for key, cfg, base in (("raw", "nrc", "pt"), ("oidn", "nrc+oidn", "pt+oidn")):
+        pairs = [("raw", "nrc", "pt"), ("oidn", "nrc+oidn", "pt+oidn")]
+        if args.cold_start:  # NRC's 30th frame alone beside its running mean
+            pairs += [("raw_last", "nrc:last", "pt"), ("oidn_last", "nrc:last+oidn", "pt+oidn")]
+        for key, cfg, base in pairs:
             q = pick(s, cfg, base, bool(args.cold_start))
             res[f"ratio_{key}"] = None if q is None else q.get("ratio_rel_mse_medium_corr")
             res[f"ratio_{key}_uncorrected"] = None if q is None else q.get("ratio_rel_mse_medium")
             res[f"pt_extrapolated_{key}"] = None if q is None else q.get("extrapolated")
             res[f"time_frame_{key}_s"] = None if q is None else q.get("time_s")
             res[f"nrc_spp_{key}"] = None if q is None else q.get("spp")
-        for cfg in ("nrc", "nrc+oidn", "pt_compiled", "pt_compiled+oidn"):
+        for cfg in ("nrc", "nrc+oidn", "pt_compiled", "pt_compiled+oidn", "nrc:last", "nrc:last+oidn"):
             rows = [r for r in s["rows"] if r["config"] == cfg]
             if cfg.startswith("nrc") and res.get("nrc_spp_oidn") is not None:  # NRC at its best spp per frame
                 rows = [r for r in rows if r["spp"] == res["nrc_spp_oidn"]] or rows
@@ -191,8 +194,11 @@ def main(argv: list[str] | None = None) -> int:
                  "(imports, scene, the warm-up frame: the step's load from the compile cache); OIDN on both sides "
                  "for the +OIDN column, its time included; ratios of floor-corrected relMSE over the medium pixels "
                  "(< 1: NRC better); PT interpolated log-log between its running means (slope -1 beyond them).", "",
-                 "| point | median tau | albedo | NRC / PT | NRC+OIDN / PT+OIDN | NRC whole time (s) | "
-                 "PT frames by then | NRC mean / ref | ref floor |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                 "Two NRC images: its running mean over the 30 frames (a static camera's accumulation, which keeps "
+                 "the untrained cache's first frames) and its 30th frame alone.", "",
+                 "| point | median tau | albedo | NRC / PT: mean, frame | NRC+OIDN / PT+OIDN: mean, frame | "
+                 "NRC whole time (s) | PT frames by then | NRC image mean / ref: mean, frame | ref floor |",
+                 "|---|---:|---:|---|---|---:|---:|---|---:|"]
     else:
         lines = [f"{args.width} x {args.height}, equal time per frame after {args.warmup} NRC warm-up frames; ratios "
                  "of floor-corrected relMSE over the medium pixels (< 1: NRC better); PT = the compiled path tracer at "
@@ -207,9 +213,11 @@ def main(argv: list[str] | None = None) -> int:
 
     for r in sorted(results, key=lambda r: (r["albedo"], r["tau_median"])):
         if args.cold_start:
-            lines.append(f"| {r['point']} | {r['tau_median']:.1f} | {r['albedo']:g} | {f(r['ratio_raw'])} | "
-                         f"{f(r['ratio_oidn'])} | {f(r.get('time_frame_oidn_s'))} | {r.get('pt_compiled+oidn_frames')} | "
-                         f"{f(r.get('nrc_mean_ratio_medium'))} | {f(r['rel_mse_floor_medium'], 2)} |")
+            lines.append(f"| {r['point']} | {r['tau_median']:.1f} | {r['albedo']:g} | {f(r['ratio_raw'])}, "
+                         f"{f(r.get('ratio_raw_last'))} | {f(r['ratio_oidn'])}, {f(r.get('ratio_oidn_last'))} | "
+                         f"{f(r.get('time_frame_oidn_s'))} | {r.get('pt_compiled+oidn_frames')} | "
+                         f"{f(r.get('nrc_mean_ratio_medium'))}, {f(r.get('nrc:last_mean_ratio_medium'))} | "
+                         f"{f(r['rel_mse_floor_medium'], 2)} |")
             continue
         lines.append(f"| {r['point']} | {r['tau_median']:.1f} | {r['albedo']:g} | {f(r['ratio_raw'])} | "
                      f"{f(r['ratio_oidn'])} ({r.get('nrc_spp_oidn')}) | {f(r.get('time_frame_oidn_s'))} | {f(r.get('pt_compiled_time_s'))} | "
@@ -228,7 +236,12 @@ def main(argv: list[str] | None = None) -> int:
             pts = sorted((r["tau_median"], r["ratio_oidn"]) for r in results
                          if r["albedo"] == albedo and r["ratio_oidn"] is not None and r["ratio_oidn"] > 0)
             if pts:
-                ax.loglog(*zip(*pts), "-o", label=f"albedo {albedo:g}, NRC+OIDN / PT+OIDN")
+                ax.loglog(*zip(*pts), "-o", label=f"albedo {albedo:g}, NRC+OIDN / PT+OIDN"
+                          + (" (NRC's running mean)" if args.cold_start else ""))
+            pts = sorted((r["tau_median"], r["ratio_oidn_last"]) for r in results if r["albedo"] == albedo
+                         and r.get("ratio_oidn_last") is not None and r["ratio_oidn_last"] > 0)
+            if pts:
+                ax.loglog(*zip(*pts), "--^", label=f"albedo {albedo:g}, NRC+OIDN / PT+OIDN (NRC's last frame)")
         pts = sorted((r["tau_median"], r["ratio_raw"]) for r in results if r["ratio_raw"] and r["ratio_raw"] > 0)
         if pts:
             ax.loglog(*zip(*pts), ":s", color="grey", label="raw NRC / raw PT (all albedos)")

@@ -34,6 +34,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--acc-nrc-frames", type=int, default=None,
                    help="NRC's frames in accumulate mode (default --acc-max-frames; scored there too), e.g. 30 with a "
                         "larger --acc-max-frames for the path tracer, which then runs until --acc-budget-s")
+    p.add_argument("--acc-nrc-last", action="store_true",
+                   help="also score NRC's frame alone at each accumulated point (config NAME:last): after a cold "
+                        "start its running mean still holds the untrained cache's first frames")
     p.add_argument("--acc-budget-s", type=float, default=60.0, help="render seconds per sequence (accumulate)")
     p.add_argument("--acc-repeats", type=int, default=2, help="independent sequences (accumulate mode)")
     p.add_argument("--acc-pt-spp", type=int, default=4,

@@ -365,6 +365,39 @@ def test_with_a_frozen_cache_the_image_does_not_wait_for_training_paths():
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("carry", [0, 4])
+def test_the_fused_tail_writes_the_training_records_of_the_vertex_passes(monkeypatch, carry):
+    """NRC's tail fuses the vertex into the tracking step (Machine.advance) and reads the training records from the
+    state after each call: with the tail off, from the first call on, or only at the end, the same records reach
+    the cache (bitwise) and the same image (a pixel's samples may be harvested in another order). Carried
+    (``carry_frames`` 4), a frame stops at another call with the tail, so its late records arrive in other frames:
+    the image (frozen cache) is still the same."""
+    import nrc.render.wavefront.driver as drv
+
+    out = {}
+    for slots, calls in ((0, 8), (1 << 20, 1), (16, 3)):
+        monkeypatch.setattr(drv, "TAIL_SLOTS", slots)
+        monkeypatch.setattr(drv, "TAIL_CALLS", calls)
+        cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun_sky", "scene.integrator.spp=2",
+                       "scene.volume.density_scale=3", "renderer.training.unbiased_fraction=0.5",
+                       f"renderer.training.carry_frames={carry}", "renderer.backend=eager"])
+        cache = StubCache(lambda x, d: torch.full_like(x, 0.5))
+        r = NRCRenderer(load_scene(cfg.scene), cfg, cache=cache)
+        run_compiled_structure_eagerly(r.tracer.core)  # shadow rays inside the step: the tail can fuse
+        frames = [r.render_frame(f) for f in range(3)]
+        out[slots] = ([f[0] for f in frames], cache.batches, sum(f[1].get("tail_calls", 0) for f in frames))
+    # carried: a frame stops once only training paths are left, before 16 slots are (no tail then)
+    assert out[0][2] == 0 and out[1 << 20][2] > 0 and (out[16][2] > 0 or carry)
+    for slots in (1 << 20, 16):
+        images, batches, _ = out[slots]
+        assert len(batches) == len(out[0][1]) > 0
+        for got, want in zip(batches if not carry else [], out[0][1]):
+            for a, b in zip(got, want):
+                assert torch.equal(a, b)
+        for a, b in zip(images, out[0][0]):
+            torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+
+
 class TwoWeightCache(StubCache):
     """Answers EMA queries with ``c_ema`` and raw-weight queries with ``c_raw``."""
 

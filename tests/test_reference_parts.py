@@ -125,6 +125,41 @@ def test_parts_from_another_torch_merge_with_a_warning(two_parts, tmp_path, capl
     assert any("different devices / torch versions" in r.getMessage() for r in caplog.records)
 
 
+def test_a_floor_target_stops_at_it_and_names_the_reference_by_its_spp(tmp_path):
+    """``reference.rel_mse_floor``: one process stops at the first chunk count whose noise floor over the medium
+    pixels is at most the target; the merged EXR is the one-process reference of that many chunks (bitwise), named
+    by its spp, with the target in its header."""
+    from nrc.evaluation.reference_parts import merge_to_floor
+
+    six = tmp_path / "six.exr"
+    render_reference(compose(TINY), six, CHUNK, 6, progress=False)
+    target = read_reference(six).attrs["rel_mse_floor_medium"]  # reached with 6 chunks at the latest
+    out = tmp_path / "ref.exr"
+    part = render_part(compose(TINY), out, CHUNK, 64, range(64), progress=False, floor_target=target)
+    assert 2 <= part.done <= 6
+    path = merge_to_floor(compose(TINY), out, CHUNK, 64, target, lambda spp: tmp_path / f"ref_{spp}spp.exr")
+    assert path == tmp_path / f"ref_{part.done}spp.exr"
+    ref = read_reference(path)
+    assert ref.attrs["spp"] == part.done and ref.attrs["rel_mse_floor_medium"] <= target
+    assert ref.attrs["rel_mse_floor_target"] == pytest.approx(target)
+    same = tmp_path / "same.exr"
+    render_reference(compose(TINY), same, CHUNK, part.done, progress=False)
+    np.testing.assert_array_equal(ref.image, read_reference(same).image)
+
+
+def test_a_floor_target_not_reached_names_the_chunks_to_render(two_parts, tmp_path):
+    from nrc.evaluation.reference_parts import merge_to_floor
+
+    out = copy_of(two_parts, tmp_path, keep=("chunks_00000_00001.npz",))
+    with pytest.raises(NRCError, match=r"has 1 chunks.*about 4 chunks are needed; render reference.chunks=1:4"):
+        merge_to_floor(compose(TINY), out, CHUNK, TOTAL, 1e-9, lambda spp: tmp_path / "never.exr")
+    assert not (tmp_path / "never.exr").exists()
+    (tmp_path / "all").mkdir()
+    out = copy_of(two_parts, tmp_path / "all")  # every chunk of the reference, floor still above: written
+    path = merge_to_floor(compose(TINY), out, CHUNK, TOTAL, 1e-9, lambda spp: tmp_path / f"r{spp}.exr")
+    assert path == tmp_path / "r4.exr" and read_reference(path).attrs["spp"] == 4
+
+
 def test_chunk_ranges_are_checked():
     assert parse_chunks("all", 6) == range(6) and parse_chunks("2:5", 6) == range(2, 5)
     for bad in ("5:2", "0:7", "x", "1:2:3"):
@@ -132,9 +167,12 @@ def test_chunk_ranges_are_checked():
             parse_chunks(bad, 6)
 
 
-def reference_app(cwd, *args, timeout=600):
+def reference_app(cwd, *args, timeout=600, env_dir=None):
+    import os
+
+    env = {**os.environ, **({"NRC_REFERENCE_DIR": str(env_dir)} if env_dir else {})}
     return subprocess.run([sys.executable, "-m", "nrc.reference_app", *args], cwd=cwd, capture_output=True,
-                          text=True, timeout=timeout)
+                          text=True, timeout=timeout, env=env)
 
 
 @pytest.mark.slow
@@ -147,6 +185,23 @@ def test_reference_app_reports_missing_chunks_in_one_line(tmp_path):
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "render reference.chunks=2:6 (each range as a job)" in proc.stderr
     assert parts_dir(tmp_path / "r.exr").is_dir() and not (tmp_path / "r.exr").exists()
+
+
+@pytest.mark.slow
+def test_reference_app_floor_target(tmp_path):
+    """One run with ``reference.rel_mse_floor`` renders until the floor, merges into the EXR named by its spp; a bad
+    target is one line naming the key."""
+    proc = reference_app(REPO, *TINY, "scene.integrator.spp=64", "reference.chunk_spp=2", "reference.rel_mse_floor=0.2",
+                         f"hydra.run.dir={tmp_path / 'run'}", "hydra.job.chdir=false",
+                         env_dir=tmp_path / "refs")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (exr,) = (tmp_path / "refs").glob("reference_*spp.exr")
+    ref = read_reference(exr)
+    assert exr.name.endswith(f"_{ref.attrs['spp']}spp.exr") and ref.attrs["spp"] < 64
+    assert ref.attrs["rel_mse_floor_medium"] <= 0.2
+    proc = reference_app(REPO, *TINY, "reference.rel_mse_floor=-1", f"hydra.run.dir={tmp_path / 'bad'}")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "reference.rel_mse_floor must be > 0.0, got -1.0" in proc.stderr
 
 
 SPP16 = ["scene.integrator.spp=16", "reference.chunk_spp=1"]

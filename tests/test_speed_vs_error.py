@@ -78,7 +78,7 @@ def test_smoke_two_configs_both_modes(sve, cli, tmp_path):
     argv = ["--preset", "none", "--out", str(tmp_path / "out"), "--reference", str(tmp_path / "missing.exr"),
             "--configs", "pt", "--config", second, "--pt-spp", "1,2", "--repeats", "2", "--warmup", "1",
             "--frames", "2", "--acc-max-frames", "2", "--acc-repeats", "2",
-            "--acc-pt-spp", "1", "--acc-configs", "all", "--quiet", "--threads", "1", *TINY]
+            "--acc-pt-spp", "1", "--acc-configs", "all", "--acc-nrc-last", "--quiet", "--threads", "1", *TINY]
     # the reference: a small one rendered here, then passed explicitly
     from conftest import compose
     from nrc.evaluation.reference import render_reference
@@ -89,7 +89,12 @@ def test_smoke_two_configs_both_modes(sve, cli, tmp_path):
     out = tmp_path / "out"
     rows = list(csv.DictReader(open(out / "speed_vs_error.csv")))
     names = {r["config"] for r in rows}
-    assert names == {"pt", second.split("=")[0]}
+    nrc_name = second.split("=")[0]
+    assert names == {"pt", nrc_name} | ({nrc_name + ":last"} if nrc_available() else set())
+    if nrc_available():  # NRC's frame alone beside its running mean: the same image after one frame
+        acc = {(r["config"], int(r["frames"])): r for r in rows if r["mode"] == "accumulate"}
+        assert acc[(nrc_name + ":last", 1)]["rel_mse"] == acc[(nrc_name, 1)]["rel_mse"]
+        assert acc[(nrc_name + ":last", 2)]["rel_mse"] != acc[(nrc_name, 2)]["rel_mse"]
     assert {r["mode"] for r in rows} == {"single", "accumulate"}
     for r in rows:
         assert float(r["time_s"]) > 0 and float(r["rel_mse"]) >= 0 and r["rel_mse_medium"] != ""
@@ -109,7 +114,8 @@ def test_smoke_two_configs_both_modes(sve, cli, tmp_path):
     if nrc_available():
         single = [q for q in summary["equal_time"] if q["mode"] == "single"]
         assert len(single) == 1 and single[0]["ratio_rel_mse"] > 0
-        assert [q["frames"] for q in summary["equal_time"] if q["mode"] == "accumulate"] == [1, 2]
+        assert [(q["config"], q["frames"]) for q in summary["equal_time"] if q["mode"] == "accumulate"] == [
+            (nrc_name, 1), (nrc_name, 2), (nrc_name + ":last", 1), (nrc_name + ":last", 2)]
         assert len(summary["equal_cpu_time"]) == 1 and summary["equal_cpu_time"][0]["ratio_rel_mse"] > 0
         assert "Equal time per frame" in md
 

@@ -21,9 +21,11 @@ chunk: float64 rounding (~1e-16 relative), which the float32 image almost never 
 from __future__ import annotations
 
 import logging
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -150,10 +152,11 @@ def _check(part: Part, chash: str, shash: str, chunk_spp: int, seed: int, n_chun
 
 
 def render_part(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int, chunks: range,
-                progress: bool = True, stop_after: int | None = None) -> Part:
+                progress: bool = True, stop_after: int | None = None, floor_target: float | None = None) -> Part:
     """Render (or resume) ``chunks`` of the ``total_spp`` reference of ``cfg`` into their part file (see the
-    module docstring); ``stop_after``: at most this many chunks in this call (a kill, for tests). Returns the
-    part."""
+    module docstring); ``stop_after``: at most this many chunks in this call (a kill, for tests);
+    ``floor_target``: stop once the part's own noise floor over the medium pixels (:func:`part_floor`) is at most
+    this (from 2 chunks on). Returns the part."""
     n_chunks, seed = _plan(cfg, chunk_spp, total_spp)
     if chunks.start < 0 or chunks.stop > n_chunks or len(chunks) == 0:
         raise ConfigError(f"chunks {chunks.start}:{chunks.stop} are outside the reference's 0:{n_chunks}")
@@ -169,9 +172,10 @@ def render_part(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int
     todo = range(chunks.start + part.done, chunks.stop)
     if stop_after is not None:
         todo = todo[:stop_after]
-    if not len(todo):
+    scene = load_scene(cfg.scene, device) if len(todo) or floor_target is not None else None
+    alpha = medium_alpha(scene) if floor_target is not None else None
+    if not len(todo) or (floor_target is not None and part_floor(part, alpha) <= floor_target):
         return part
-    scene = load_scene(cfg.scene, device)
     with tqdm(total=len(chunks), initial=part.done, unit="chunk", desc=f"reference part {path.name}",
               disable=not progress) as bar:
         for i in todo:
@@ -181,7 +185,18 @@ def render_part(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int
             part.done += 1
             part.write()
             bar.update(1)
+            if floor_target is not None and part_floor(part, alpha) <= floor_target:
+                break
     return part
+
+
+def part_floor(part: Part, alpha: np.ndarray | None) -> float:
+    """The noise floor (``rel_mse_floor``) of the chunks a part holds: over the medium pixels (``alpha``), over all
+    pixels where the image shows no medium; infinite below 2 chunks."""
+    if part.done < 2:
+        return math.inf
+    floor_all, floor_med = reference_noise_floor(part.total, part.total_sq, part.done, alpha)
+    return floor_med if floor_med >= 0 else floor_all
 
 
 def _ranges(indices: list[int]) -> list[range]:
@@ -195,11 +210,10 @@ def _ranges(indices: list[int]) -> list[range]:
     return runs
 
 
-def merge_parts(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int) -> np.ndarray:
-    """Merge the parts in ``<out>.parts/`` into the reference EXR ``out`` (the header of
-    :func:`~nrc.evaluation.reference.render_reference`, plus ``parts``); returns the (H, W, 3) float32 image.
-    Raises :class:`NRCError` naming the part that does not belong, the overlapping parts, or the missing
-    chunks."""
+def _gather(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int
+            ) -> tuple[list[Part], dict[int, Path], int, int, str, str]:
+    """The parts of ``<out>.parts/`` checked against the config and each other: ``(parts, chunk -> file, chunk
+    count, base seed, config hash, scene hash)``."""
     n_chunks, seed = _plan(cfg, chunk_spp, total_spp)
     chash, shash = config_hash(cfg), scene_hash(cfg)
     folder = parts_dir(out)
@@ -217,28 +231,83 @@ def merge_parts(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int
                 raise NRCError(f"reference parts {owner[i].name} and {part.path.name} overlap (both hold chunk {i}): "
                                "delete one of them")
             owner[i] = part.path
-    missing = [i for i in range(n_chunks) if i not in owner]
-    if missing:
-        runs = ", ".join(f"{r.start}:{r.stop}" for r in _ranges(missing))
-        raise NRCError(f"the reference {Path(out).name} misses {len(missing)} of {n_chunks} chunks; render "
-                       f"reference.chunks={runs} (each range as a job), then merge again")
     kinds = sorted({(p.device, p.torch) for p in parts})
     if len(kinds) > 1:
         log.warning("merging reference parts from different devices / torch versions (%s): unbiased, but not the "
                     "bits one process would render", ", ".join(f"{d} torch {t}" for d, t in kinds))
+    return parts, owner, n_chunks, seed, chash, shash
+
+
+def _sums(parts: list[Part]) -> tuple[np.ndarray, np.ndarray, int]:
+    """The parts' sums added in chunk order, and the number of chunks in them."""
     done = [p for p in parts if p.done]
     total, total_sq = done[0].total.copy(), done[0].total_sq.copy()
     for p in done[1:]:
         total += p.total
         total_sq += p.total_sq
-    reference = (total / n_chunks).astype(np.float32)
-    scene = load_scene(cfg.scene, resolve_device(cfg.get("device", "cpu")))
-    alpha = medium_alpha(scene)
-    floor_all, floor_med = reference_noise_floor(total, total_sq, n_chunks, alpha)
+    return total, total_sq, sum(p.done for p in done)
+
+
+def merge_parts(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int) -> np.ndarray:
+    """Merge the parts in ``<out>.parts/`` into the reference EXR ``out`` (the header of
+    :func:`~nrc.evaluation.reference.render_reference`, plus ``parts``); returns the (H, W, 3) float32 image.
+    Raises :class:`NRCError` naming the part that does not belong, the overlapping parts, or the missing
+    chunks."""
+    parts, owner, n_chunks, seed, chash, shash = _gather(cfg, out, chunk_spp, total_spp)
+    missing = [i for i in range(n_chunks) if i not in owner]
+    if missing:
+        runs = ", ".join(f"{r.start}:{r.stop}" for r in _ranges(missing))
+        raise NRCError(f"the reference {Path(out).name} misses {len(missing)} of {n_chunks} chunks; render "
+                       f"reference.chunks={runs} (each range as a job), then merge again")
+    total, total_sq, n = _sums(parts)
+    return _write(cfg, out, total, total_sq, n, chunk_spp, seed, chash, shash, len([p for p in parts if p.done]))
+
+
+def merge_to_floor(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int, target: float,
+                   exr_for: Any) -> Path:
+    """``reference.rel_mse_floor``: merge every chunk the parts in ``<out>.parts/`` hold (their seeds are
+    independent, so any set of them is an unbiased reference of ``chunks x chunk_spp`` spp) into the EXR
+    ``exr_for(spp)`` once its noise floor over the medium pixels is at most ``target``; returns its path. Below the
+    target it raises :class:`NRCError` naming about how many chunks more it needs (the floor falls as 1 / chunks)
+    and the ranges to render, unless every chunk of the ``total_spp`` reference is there: then the reference is
+    written with a warning (``scene.integrator.spp`` is the most a floor target renders)."""
+    parts, owner, n_chunks, seed, chash, shash = _gather(cfg, out, chunk_spp, total_spp)
+    total, total_sq, n = _sums(parts)
+    alpha = medium_alpha(load_scene(cfg.scene, resolve_device(cfg.get("device", "cpu"))))
+    floor_all, floor_med = reference_noise_floor(total, total_sq, n, alpha)
+    floor = floor_med if floor_med >= 0 else floor_all
+    if n < 2 or floor > target:
+        missing = [i for i in range(n_chunks) if i not in owner]
+        need = n_chunks if n < 2 else min(n_chunks, math.ceil(n * floor / target))
+        if len(missing) and need > n:
+            todo = missing[:need - n]
+            runs = ", ".join(f"{r.start}:{r.stop}" for r in _ranges(todo))
+            raise NRCError(f"the reference {Path(out).name} has {n} chunks, whose noise floor "
+                           f"{'(from 2 chunks on)' if n < 2 else f'{floor:.3g}'} is above reference.rel_mse_floor="
+                           f"{target:g}: about {need} chunks are needed; render reference.chunks={runs}, then merge "
+                           "again")
+        log.warning("the reference's noise floor %.3g is above reference.rel_mse_floor=%g with every chunk of "
+                    "scene.integrator.spp=%d: written as it is (raise scene.integrator.spp for more)", floor, target,
+                    total_spp)
+    path = Path(exr_for(n * chunk_spp))
+    _write(cfg, path, total, total_sq, n, chunk_spp, seed, chash, shash, len([p for p in parts if p.done]),
+           {"rel_mse_floor_target": float(target)}, alpha)
+    return path
+
+
+def _write(cfg: DictConfig, out: str | Path, total: np.ndarray, total_sq: np.ndarray, n: int, chunk_spp: int,
+           seed: int, chash: str, shash: str, n_parts: int, extra: dict | None = None,
+           alpha: np.ndarray | None = None) -> np.ndarray:
+    """The reference EXR of ``n`` chunks' sums (its header: :func:`~nrc.evaluation.reference.render_reference`'s,
+    plus ``parts``); ``alpha``: the scene's medium alpha when the caller has it."""
+    reference = (total / n).astype(np.float32)
+    if alpha is None:
+        alpha = medium_alpha(load_scene(cfg.scene, resolve_device(cfg.get("device", "cpu"))))
+    floor_all, floor_med = reference_noise_floor(total, total_sq, n, alpha)
     attrs = {
-        "spp": int(total_spp), "seed": seed, "config_hash": chash, "scene_hash": shash,
+        "spp": int(n * chunk_spp), "seed": seed, "config_hash": chash, "scene_hash": shash,
         "chunk_spp": int(chunk_spp), "rel_mse_floor": floor_all, "rel_mse_floor_medium": floor_med,
-        "alpha": "A channel: 1 - camera-ray transmittance through the medium", "parts": len(done),
+        "alpha": "A channel: 1 - camera-ray transmittance through the medium", "parts": n_parts, **(extra or {}),
     }
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     write_reference_exr(out, reference, alpha, attrs)

@@ -23,7 +23,15 @@ Two modes (``--mode single|accumulate|both``):
   -- the compile or its load from the cache -- is the rows' ``startup_s``); the error of the
   running mean is recorded at 1, 2, 4, ... frames until ``--acc-budget-s`` seconds of rendering (per
   configuration and repeat). ``--acc-repeats`` independent sequences give bias and variance. The
-  crossover is the first time after which the unbiased ``pt`` is more accurate than NRC.
+  crossover is the first time after which the unbiased ``pt`` is more accurate than NRC; the accumulated
+  equal-time ratios compare each NRC point with the path tracers' running means at its time. ``--acc-startup``
+  counts the start-up in those times (the process's imports and scene load, each configuration's warm-up: the
+  cold start a user waits for); ``--acc-nrc-frames`` caps NRC's frames apart from the path tracer's;
+  ``--acc-nrc-last`` also scores NRC's frame alone (``NAME:last``) beside its running mean.
+
+**As jobs** (``--jobs local|slurm``): each configuration runs as its own submitit job (:mod:`nrc.evaluation.jobs`)
+writing its rows to ``<out>/configs/<NAME>.json``; the parent merges them into the same outputs, refusing rows
+from different machine types.
 
 The reference is ``--reference`` or ``data/references/reference_<scene hash>_<spp>spp.exr``, rendered
 (resumably) with ``--ref-spp`` spp when missing; its own noise (``rel_mse_floor`` in its header) is
@@ -327,8 +335,10 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
     nrc_frames = getattr(args, "acc_nrc_frames", None) or args.acc_max_frames
     marks = sorted(set(checkpoints(args.acc_max_frames)) | (set() if cfg.renderer.name == "pt" else {nrc_frames}))
     seqs: list[dict[int, tuple[float, np.ndarray]]] = []  # per repeat: frames -> (cumulative time, mean)
+    lasts: list[dict[int, tuple[float, np.ndarray]]] = []  # NRC with --acc-nrc-last: frames -> (time, that frame)
     for rep in range(args.acc_repeats):
         rec: dict[int, tuple[float, np.ndarray]] = {}
+        last: dict[int, tuple[float, np.ndarray]] = {}
         if cfg.renderer.name == "pt":
             if rep == 0:
                 t0 = time.perf_counter()
@@ -351,10 +361,12 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
             class Stop(Exception):
                 pass
 
-            def cb(frame, image, accumulated, stats, rec=rec, state=state):
+            def cb(frame, image, accumulated, stats, rec=rec, last=last, state=state):
                 state["t"] += float(stats["time_frame_s"])
                 if frame + 1 in marks:
                     rec[frame + 1] = (state["t"], np.nan_to_num(np.asarray(accumulated, np.float64)))
+                    if getattr(args, "acc_nrc_last", False):
+                        last[frame + 1] = (state["t"], np.nan_to_num(np.asarray(image, np.float64)))
                 if state["t"] > args.acc_budget_s:
                     raise Stop
 
@@ -363,22 +375,28 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
             except Stop:
                 pass
         seqs.append(rec)
+        lasts.append(last)
     rows = []
-    common = sorted(set.intersection(*(set(r) for r in seqs)))
-    for n in common:
-        spp = args.acc_pt_spp if cfg.renderer.name == "pt" else args.acc_nrc_spp
-        render_s = float(np.mean([r[n][0] for r in seqs]))
-        # the warm-up (compile or cache load, 16 x 9), and with --acc-startup the process's own start-up too
-        row = {"mode": "accumulate", "config": name, "renderer": cfg.renderer.name, "spp": spp, "frames": n,
-               "render_s": render_s, "startup_s": startup, "process_startup_s": args.process_startup_s,
-               "time_s": render_s + (startup + args.process_startup_s if args.acc_startup else 0.0),
-               "startup_counted": bool(args.acc_startup), **scorer.score([r[n][1] for r in seqs])}
-        rows.append(row)
-        log(row)
-        if args.denoise:  # the running mean denoised at this point (its time + one denoise)
-            rows.append(denoised_row(row, [r[n][1] for r in seqs], scorer))
-            log(rows[-1])
+    spp = args.acc_pt_spp if cfg.renderer.name == "pt" else args.acc_nrc_spp
+    for config, runs in ((name, seqs), (name + LAST, lasts)):
+        if not all(runs):
+            continue
+        for n in sorted(set.intersection(*(set(r) for r in runs))):
+            render_s = float(np.mean([r[n][0] for r in runs]))
+            # the warm-up (compile or cache load, 16 x 9), and with --acc-startup the process's own start-up too
+            row = {"mode": "accumulate", "config": config, "renderer": cfg.renderer.name, "spp": spp, "frames": n,
+                   "render_s": render_s, "startup_s": startup, "process_startup_s": args.process_startup_s,
+                   "time_s": render_s + (startup + args.process_startup_s if args.acc_startup else 0.0),
+                   "startup_counted": bool(args.acc_startup), **scorer.score([r[n][1] for r in runs])}
+            rows.append(row)
+            log(row)
+            if args.denoise:  # the image denoised at this point (its time + one denoise)
+                rows.append(denoised_row(row, [r[n][1] for r in runs], scorer))
+                log(rows[-1])
     return rows
+
+
+LAST = ":last"  # NRC's frame alone at an accumulated point (--acc-nrc-last), beside its running mean
 
 
 # ---------------------------------------------------------------------------- analysis

@@ -18,6 +18,7 @@ State fields (besides the core's, :mod:`nrc.render.wavefront.state`):
 ``spread``   1     path spread of the ``spread`` termination rule
 ``a0``       1     spread at the first vertex
 ``x_prev``   3     previous vertex (the camera at first)
+``d_in``     3     incoming direction at the last vertex that wrote a training record (the record's direction)
 ============ ===== =====================================================================================
 
 Integer fields: ``pid`` (path id), ``rec_base`` (first training record of a training path, -1 for render paths),
@@ -37,7 +38,7 @@ import torch
 from torch import Tensor
 
 from nrc.render.wavefront.program import Collector, Decision, VertexEvent, VertexProgram
-from nrc.render.wavefront.state import QUERY, where3
+from nrc.render.wavefront.state import QUERY, VERTEX, where3
 
 # ``never`` of a render path continued past its cache termination (renderer.debias): its contributions from there
 # on go to accumulator row 1, the suffix row (the collector maps it to the sample's own row of the accumulator)
@@ -65,7 +66,7 @@ class NRCVertex(VertexProgram):
     vertex at which an unbiased training path ends in the cache after all, 0 never; per frame ``debias_q``) go into
     ``P`` only."""
 
-    float_fields = (("spread", 1), ("a0", 1), ("x_prev", 3))
+    float_fields = (("spread", 1), ("a0", 1), ("x_prev", 3), ("d_in", 3))
     int_fields = ("pid", "rec_base", "n_term", "extra", "never", "rec")
 
     def __init__(self, settings: Any, hooks: tuple = ()) -> None:
@@ -84,8 +85,11 @@ class NRCVertex(VertexProgram):
         self.indirect_debias = self.debias and self.cache_target == "indirect"
 
     @property
-    def fused_tail(self) -> bool:  # the collector writes the training records at the vertex passes
-        return False
+    def fused_tail(self) -> bool:
+        """The tail may fuse the vertex: a training record's position (``o``) and direction (``d_in``) stay in the
+        slot until its next vertex, where the collector reads them after each fused call. Not with ``debias`` (its
+        control-variate queries need the throughput before the vertex) or hooks (their watchers need the passes)."""
+        return not self.debias and not self.hooks
 
     @property
     def own_skips_env(self) -> bool:  # a continued path's next segment does not count the sky (indirect debias)
@@ -137,6 +141,7 @@ class NRCVertex(VertexProgram):
         recorded = go & is_train & (n_s <= V)
         beta_s = tuple(torch.where(recorded, albedo + zero, b) for b in beta_s)
         s.rec = torch.where(recorded, s.rec_base + n_s - 1, torch.full_like(s.rec, -1))
+        s.d_in = where3(recorded, s.d, s.d_in)  # the record's direction: the incoming one, before the scattering
         s.spread, s.a0, s.n_term = spread, a0, n_term
         s.x_prev = where3(go, x, s.x_prev)
         # the vertex does next-event estimation: a scattering one; with cache_target=indirect a terminating one too
@@ -194,9 +199,9 @@ class NRCCollector(Collector):
 
     @property
     def needs_vertex_passes(self) -> bool:
-        """The training records' positions and directions are written at the vertex passes (and, with
-        ``renderer.debias``, the continued paths' control-variate queries)."""
-        return True
+        """With ``renderer.debias`` the continued paths' control-variate queries, and a watcher's records, are
+        taken at the vertex passes; the training records are not (:meth:`after_advance` reads them)."""
+        return self.suffix_base is not None or bool(self.watchers)
 
     @property
     def indirect(self) -> bool:
@@ -261,6 +266,20 @@ class NRCCollector(Collector):
             self.scattered[I[ly.i("pid")][train] - self.n_render] = True
         if self.finished is not None:
             self.finished[I[ly.i("pid")][is_train] - self.n_render] = True
+
+    def after_advance(self, ly: Any, F: Tensor, I: Tensor) -> None:
+        """The training records of the tail's fused vertices: a slot's last record (``rec``), its position ``o``
+        and direction ``d_in`` stay until its next collision, so a record written at an earlier call (or pass) is
+        written again with the same values. Not where the slot waits at its next collision (``VERTEX``: the vertex
+        waits for the last one's shadow ray), whose position ``o`` already holds: the record was written when its
+        own vertex ran, at the call that left the slot in flight."""
+        rec = I[ly.i("rec")]
+        r = ((rec >= 0) & (I[ly.i("occupied")] != 0) & (I[ly.i("flight")] != VERTEX)).nonzero().squeeze(1)
+        if len(r):
+            slot = rec[r]
+            self.rec_x[slot] = F[ly.f("o")][:, r].T
+            self.rec_d[slot] = F[ly.f("d_in")][:, r].T
+            self.rec_valid[slot] = True
 
     def vertex_pass(self, ly: Any, F_in: Tensor, I_in: Tensor, F_out: Tensor, I_out: Tensor) -> Tensor | None:
         """Returns the slots continued past their cache termination at this vertex (``renderer.debias``)."""

@@ -223,7 +223,8 @@ class Wavefront:
     @property
     def fusable(self) -> bool:
         """The tail runs fused calls (:meth:`Machine.advance`): the step traces its shadow rays, no queue waits for
-        a vertex pass and the collector needs none (:attr:`Collector.needs_vertex_passes`)."""
+        a vertex pass and the collector needs none (:attr:`Collector.needs_vertex_passes`; what it keeps of the
+        fused vertices it reads from the state after each call, :meth:`Collector.after_advance`)."""
         return (self.machine.fusable and self.shadow is None and self.equiangular is None
                 and not self.collector.needs_vertex_passes)
 
@@ -351,12 +352,13 @@ class Wavefront:
         :data:`TAIL_CALLS` fused calls (a tracking step and the vertices it reaches, :meth:`Machine.advance`), then
         a harvest and, below 3/4 live, a compaction. A path takes the same steps with the same draws as in the
         driver's main loop; only when its slot is harvested differs."""
-        c, tm = self.counts, self.timers
+        c, tm, ly, col = self.counts, self.timers, self.layout, self.collector
         F, I = self._compact(F, I, 2)
         while True:
             t_st = time.perf_counter()
             for _ in range(TAIL_CALLS):
                 F, I = self.machine.advance(F, I, self.inputs)
+                col.after_advance(ly, F, I)
             S = I.shape[1]
             c["iterations"] += TAIL_CALLS
             c["tail_calls"] = c.get("tail_calls", 0) + TAIL_CALLS

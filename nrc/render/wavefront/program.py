@@ -189,6 +189,11 @@ class Collector:
     def harvest(self, ly: Any, F: Tensor, I: Tensor, flight: Tensor) -> None:
         """Finished slots ``(F, I)`` (their rows already in the accumulator)."""
 
+    def after_advance(self, ly: Any, F: Tensor, I: Tensor) -> None:
+        """After each fused call of the driver's tail (:meth:`Machine.advance
+        <nrc.render.wavefront.machine.Machine.advance>`, which ran the vertices its slots reached without a vertex
+        pass): what the collector keeps of them from the state (``pt``: nothing; ``nrc``: the training records)."""
+
     def vertex_pass(self, ly: Any, F_in: Tensor, I_in: Tensor, F_out: Tensor, I_out: Tensor) -> Any:
         """The slots of a vertex pass, before and after the step; returns what :meth:`shadow_rows` needs."""
         if self.watchers:
