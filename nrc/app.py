@@ -263,8 +263,6 @@ class SweepSetup(Callback):
     reports it) are skipped."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        import torch
-
         from nrc.config import THREADS_ENV
 
         try:
@@ -272,7 +270,7 @@ class SweepSetup(Callback):
         except Exception as exc:  # noqa: BLE001 -- the sweeper reports a bad sweep in its own words
             log.info("sweep setup skipped: %s", exc)
             return
-        cores = torch.get_num_threads()
+        cores = default_threads()
         at_once = concurrent_jobs(config.hydra.launcher, len(jobs), cores)
         if at_once is None:
             return
@@ -281,7 +279,28 @@ class SweepSetup(Callback):
         try:
             prebuild_steps(jobs)
         finally:
-            torch.set_num_threads(cores)
+            if "torch" in sys.modules:  # imported only to build a step (a sweep whose steps are known loads none)
+                sys.modules["torch"].set_num_threads(cores)
+
+
+def default_threads() -> int:
+    """torch's default thread count in this process (the cores it may use, or ``OMP_NUM_THREADS``), without
+    importing torch where a sweep on this machine recorded it (``sweep-steps.json``, keyed by the node, the CPUs
+    this process may use and the thread variables): the launching process of a sweep whose steps are known then
+    imports no torch, which its workers import anyway."""
+    import platform
+
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    key = repr((platform.node(), cpus, os.environ.get("OMP_NUM_THREADS"), os.environ.get("MKL_NUM_THREADS")))
+    path, memo = _known_steps()
+    known = memo.get("threads", {})
+    if isinstance(known, dict) and isinstance(known.get(key), int):
+        return known[key]
+    import torch
+
+    n = torch.get_num_threads()
+    _record(path, {"threads": {**(known if isinstance(known, dict) else {}), key: n}})
+    return n
 
 
 PREBUILD_OVERRIDES = ("scene.camera.width=8", "scene.camera.height=4", "scene.integrator.spp=1", "frames=1",
@@ -303,27 +322,47 @@ def step_of(cfg: DictConfig) -> tuple[tuple[Any, ...], bool, tuple[Path, ...] | 
             aot_packages(core.step, core.steps_per_call, device))
 
 
-def _known_steps() -> tuple[Path, dict[str, list[str]]]:
-    """The sweeps' memory of which packages a job's config needs (``<compile cache>/nrc-aot/sweep-steps.json``:
-    a hash of the tiny config, the thread count, torch and the step's sources -> the package files), so that a
-    sweep run again finds its steps without building a renderer per job."""
-    from nrc.render.wavefront.machine import inductor_cache_dir
+def _known_steps() -> tuple[Path, dict[str, Any]]:
+    """The sweeps' memory (``<compile cache>/nrc-aot/sweep-steps.json``, torch-free to read): which packages a
+    job's config needs (a hash of the tiny config, the thread count, torch's version and the step's sources -> the
+    package files), so that a sweep run again finds its steps without building a renderer per job; and torch's
+    default thread count per machine (``threads``, :func:`default_threads`)."""
+    from nrc.render.compile_cache import inductor_cache_dir
 
     path = inductor_cache_dir() / "nrc-aot" / "sweep-steps.json"
     try:
-        return path, json.loads(path.read_text())
+        memo = json.loads(path.read_text())
+        return path, memo if isinstance(memo, dict) else {}
     except (OSError, ValueError):
         return path, {}
 
 
+def _record(path: Path, updates: dict[str, Any]) -> None:
+    """Add ``updates`` to the sweeps' memory (read again first: another sweep may have written it), atomically."""
+    try:
+        memo = json.loads(path.read_text()) if path.is_file() else {}
+        memo = {**(memo if isinstance(memo, dict) else {}), **updates}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(memo, indent=1))
+        tmp.replace(path)
+    except (OSError, ValueError) as exc:  # a read-only cache: the next sweep finds out again
+        log.info("sweep setup: could not record the steps (%s)", exc)
+
+
 def _known_key(tiny: DictConfig, threads: int) -> str:
     import hashlib
+    from importlib.metadata import PackageNotFoundError, version
 
-    import torch
+    from nrc.render.compile_cache import package_sources
 
-    from nrc.render.wavefront.machine import _package_sources
+    try:
+        torch_version = version("torch")
+    except PackageNotFoundError:  # a source build without metadata: torch itself knows
+        import torch
 
-    text = OmegaConf.to_yaml(tiny, resolve=True) + repr((threads, torch.__version__, _package_sources()))
+        torch_version = torch.__version__
+    text = OmegaConf.to_yaml(tiny, resolve=True) + repr((threads, torch_version, package_sources()))
     return hashlib.sha1(text.encode()).hexdigest()
 
 
@@ -334,7 +373,7 @@ def prebuild_steps(jobs: list[list[str]]) -> None:
     from nrc.config import apply_threads, compose, job_threads
 
     memo_path, memo = _known_steps()
-    n_memo = len(memo)
+    found: dict[str, list[str]] = {}
     seen = set()
     for job in jobs:
         overrides = [o for o in job if not o.startswith("reference.")]  # a reference job's own keys: pt underneath
@@ -348,7 +387,7 @@ def prebuild_steps(jobs: list[list[str]]) -> None:
             tiny = compose([*overrides, *PREBUILD_OVERRIDES, f"threads={threads}"])
             absolute_paths(tiny)
             known = _known_key(tiny, threads)
-            if memo.get(known) and all(Path(p).is_file() for p in memo[known]):
+            if isinstance(memo.get(known), list) and memo[known] and all(Path(p).is_file() for p in memo[known]):
                 continue  # its packages are in the cache: a worker loads them
             apply_threads(threads)  # the packages are keyed by the thread count
             key, cached, paths = step_of(tiny)
@@ -356,17 +395,11 @@ def prebuild_steps(jobs: list[list[str]]) -> None:
                 execute(tiny, None, progress=False)
             seen.add((key, threads))
             if paths is not None and all(p.is_file() for p in paths):
-                memo[known] = [str(p) for p in paths]
+                found[known] = [str(p) for p in paths]
         except Exception as exc:  # noqa: BLE001 -- the job itself reports a bad config, in its own words
             log.info("sweep setup: no step built for %s (%s)", " ".join(overrides), exc)
-    if len(memo) != n_memo:
-        try:
-            memo_path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = memo_path.with_suffix(f".{os.getpid()}.tmp")
-            tmp.write_text(json.dumps(memo, indent=1))
-            tmp.replace(memo_path)
-        except OSError as exc:  # a read-only cache: the next sweep builds the renderers again
-            log.info("sweep setup: could not record the steps (%s)", exc)
+    if found:
+        _record(memo_path, found)
 
 
 def resume_command(out_dir: Path) -> str:

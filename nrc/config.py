@@ -278,13 +278,13 @@ def job_threads(value: Any = "auto") -> int:
     process may use, or ``OMP_NUM_THREADS``)."""
     import os
 
-    import torch
-
     if value is None or value == "auto":
         for name in (THREADS_ENV, "SLURM_CPUS_PER_TASK"):
             given = os.environ.get(name, "")
             if given.isdigit() and int(given) >= 1:
                 return int(given)
+        import torch  # only here: a sweep's launching process may not need it
+
         return torch.get_num_threads()
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ConfigError(f"threads must be a positive integer or auto, got {value!r}")

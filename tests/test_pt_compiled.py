@@ -298,16 +298,17 @@ def test_state_machine_matches_mitsuba(preset, single_thread):
 
 def test_the_step_imports_only_what_its_aot_key_hashes():
     """The AOT packages are keyed by the sources of ``STEP_SOURCES``: the step's code may reach no other part of
-    nrc (besides errors and file I/O, which the traced step never calls), or an edit there would leave a stale
-    package in use."""
+    nrc (besides errors, file I/O and the compile cache's location, which the traced step never calls), or an edit
+    there would leave a stale package in use."""
     import subprocess
     import sys
 
-    from nrc.render.wavefront.machine import STEP_SOURCES
+    from nrc.render.compile_cache import STEP_SOURCES
 
     code = "import sys, nrc.render.wavefront.step; print(' '.join(m for m in sys.modules if m.startswith('nrc.')))"
     mods = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    allowed = tuple("nrc." + d.removesuffix(".py").replace("/", ".") for d in STEP_SOURCES) + ("nrc.errors", "nrc.io")
+    allowed = tuple("nrc." + d.removesuffix(".py").replace("/", ".") for d in STEP_SOURCES) + (
+        "nrc.errors", "nrc.io", "nrc.render.compile_cache")
     stray = [m for m in mods if m != "nrc.render" and not any(m == a or m.startswith(a + ".") for a in allowed)]
     assert "nrc.render.wavefront.step" in mods and not stray, stray
     # the renderers' vertex programs (files of STEP_SOURCES) import only from STEP_SOURCES too
@@ -324,7 +325,7 @@ def test_every_vertex_program_is_in_the_aot_key():
 
     from nrc.render.radiance_caching.vertex import NRCVertex
     from nrc.render.reuse import ReuseHook
-    from nrc.render.wavefront.machine import STEP_SOURCES
+    from nrc.render.compile_cache import STEP_SOURCES
 
     for cls in (NRCVertex, ReuseHook):
         rel = Path(inspect.getfile(cls)).resolve().relative_to(REPO / "nrc").as_posix()

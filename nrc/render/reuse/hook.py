@@ -2,7 +2,7 @@
 reuse pass (:mod:`nrc.render.reuse.reservoirs`), which records the vertex by watching the vertex passes.
 
 A hook of a vertex program (:mod:`nrc.render.wavefront.program`), so part of the compiled step: this module is in
-:data:`nrc.render.wavefront.machine.STEP_SOURCES`.
+:data:`nrc.render.compile_cache.STEP_SOURCES`.
 """
 
 from __future__ import annotations

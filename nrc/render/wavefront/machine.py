@@ -15,7 +15,6 @@ a compile would be a cache load (:func:`is_cached`).
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import logging
 import os
@@ -31,7 +30,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from nrc.io.disk_cache import source_hash
+from nrc.render.compile_cache import default_inductor_cache, inductor_cache_dir, package_sources
 from nrc.render.wavefront.step import Transport
 from nrc.transport.rng import uniforms as counter_uniforms
 
@@ -73,20 +72,9 @@ class SceneInputs:
         return SceneInputs(P.contiguous(), pad(density), pad(majorant))
 
 
-def _default_inductor_cache() -> str:
-    return str(Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nrc" / "inductor")
-
-
 # Set on import, before anything compiles: torch sets the variable itself (to /tmp/torchinductor_<user>) the first
 # time it compiles anything (the NRC cache's network, say), and every later compile follows it.
-os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", _default_inductor_cache())
-
-
-def inductor_cache_dir() -> Path:
-    """The persistent compile cache: ``$TORCHINDUCTOR_CACHE_DIR``, set to ``~/.cache/nrc/inductor`` when unset."""
-    path = Path(os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", _default_inductor_cache()))
-    path.mkdir(parents=True, exist_ok=True)
-    return path
+os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", default_inductor_cache())
 
 
 def _marker(step: Transport, device: torch.device) -> Path:
@@ -127,21 +115,6 @@ def compiled_graphs() -> int:
     return graphs + _aot_built
 
 
-# The packages and files whose code the traced step runs (tests/test_pt_compiled.py checks that the step's imports
-# stay in them), the renderers' vertex programs among them (nrc.render.wavefront.program): an edit to any of these
-# files makes new AOT packages; a stale package would run the old code unnoticed.
-STEP_SOURCES = ("render/wavefront", "render/radiance_caching/vertex.py", "render/reuse/hook.py", "transport",
-                "volume")
-
-
-@functools.lru_cache(maxsize=1)
-def _package_sources() -> str:
-    """A hash of the :data:`STEP_SOURCES` files."""
-    root = Path(__file__).resolve().parents[2]
-    return source_hash([f for d in STEP_SOURCES
-                        for f in ([root / d] if d.endswith(".py") else sorted((root / d).rglob("*.py")))])
-
-
 def aot_packages(step: Transport, steps_per_call: int, device: torch.device) -> tuple[Path, ...] | None:
     """The two package files of ``step``'s structure in the compile cache (:func:`package_names`), or None where the
     step is compiled by torch.compile instead (a device not in :data:`AOT_DEVICES`, a scripted random-number function, a lat-long
@@ -151,7 +124,7 @@ def aot_packages(step: Transport, steps_per_call: int, device: torch.device) -> 
         return None
     threads = torch.get_num_threads() if device.type == "cpu" else 0
     text = repr((step.structure, steps_per_call, device.type, torch.__version__, threads, TRACK_OPTIONS,
-                 VERTEX_OPTIONS, ADVANCE_OPTIONS, _package_sources()))
+                 VERTEX_OPTIONS, ADVANCE_OPTIONS, package_sources()))
     stem = inductor_cache_dir() / "nrc-aot" / hashlib.sha1(text.encode()).hexdigest()[:20]
     return tuple(stem.with_name(f"{stem.name}-{name}.pt2") for name in package_names(step))
 

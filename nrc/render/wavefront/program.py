@@ -20,7 +20,7 @@ collected. ``renderer=nrc``'s live in :mod:`nrc.render.radiance_caching.vertex`;
 :mod:`nrc.render.reuse`.
 
 A program's code is part of the compiled step: its module must be listed in
-:data:`nrc.render.wavefront.machine.STEP_SOURCES` (the compile cache is keyed by those files), and
+:data:`nrc.render.compile_cache.STEP_SOURCES` (the compile cache is keyed by those files), and
 :attr:`VertexProgram.structure` must hold everything its code depends on; its numbers travel in ``P``
 (:meth:`VertexProgram.param_values`), never as attributes the step reads.
 """
