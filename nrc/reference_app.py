@@ -75,8 +75,8 @@ def merge(cfg: DictConfig) -> Path:
 
 def job(cfg: DictConfig, multirun: bool) -> None:
     """Render this job's part (unless ``merge=only``), then merge when asked and every chunk is there."""
-    from nrc.evaluation.reference_parts import parse_chunks, part_path, render_part
     from nrc.evaluation.reference import _chunk_count
+    from nrc.evaluation.reference_parts import MissingChunks, parse_chunks, part_path, render_part
 
     absolute_paths(cfg)
     apply_threads(cfg.get("threads", "auto"))
@@ -91,8 +91,8 @@ def job(cfg: DictConfig, multirun: bool) -> None:
     if when == "only" or (when == "auto" and not multirun):
         try:
             merge(cfg)
-        except NRCError as exc:
-            if when == "only" or not ("misses" in str(exc) or "chunks are needed" in str(exc)):
+        except MissingChunks as exc:
+            if when == "only":
                 raise
             print(f"not merged yet: {exc}")
 

@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         res = {"point": name, "node": s["meta"].get("node"), "machine_type": s["meta"].get("machine_type"), **optical_depth(scene), "ref_spp": ref_spp,
                "rel_mse_floor_medium": s["meta"]["rel_mse_floor_medium"]}
         pairs = [("raw", "nrc", "pt"), ("oidn", "nrc+oidn", "pt+oidn")]
-        if args.cold_start:  # NRC's 30th frame alone beside its running mean
+        if args.cold_start:  # NRC's last frame alone beside its running mean
             pairs += [("raw_last", "nrc:last", "pt"), ("oidn_last", "nrc:last+oidn", "pt+oidn")]
         for key, cfg, base in pairs:
             q = pick(s, cfg, base, bool(args.cold_start))
@@ -194,8 +194,8 @@ def main(argv: list[str] | None = None) -> int:
                  "(imports, scene, the warm-up frame: the step's load from the compile cache); OIDN on both sides "
                  "for the +OIDN column, its time included; ratios of floor-corrected relMSE over the medium pixels "
                  "(< 1: NRC better); PT interpolated log-log between its running means (slope -1 beyond them).", "",
-                 "Two NRC images: its running mean over the 30 frames (a static camera's accumulation, which keeps "
-                 "the untrained cache's first frames) and its 30th frame alone.", "",
+                 f"Two NRC images: its running mean over the {args.cold_start} frames (a static camera's "
+                 f"accumulation, which keeps the untrained cache's first frames) and its last frame alone.", "",
                  "| point | median tau | albedo | NRC / PT: mean, frame | NRC+OIDN / PT+OIDN: mean, frame | "
                  "NRC whole time (s) | PT frames by then | NRC image mean / ref: mean, frame | ref floor |",
                  "|---|---:|---:|---|---|---:|---:|---|---:|"]

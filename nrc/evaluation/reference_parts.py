@@ -43,6 +43,11 @@ log = logging.getLogger(__name__)
 PART_VERSION = 1
 
 
+class MissingChunks(NRCError):
+    """The parts lack chunks the merge needs (every chunk, or enough for the noise-floor target); the message names
+    the ranges to render. A job among several merges only when this is not raised."""
+
+
 def parts_dir(out: str | Path) -> Path:
     """The folder of the parts of the reference ``out``: ``<out>.parts/``."""
     out = Path(out)
@@ -191,11 +196,17 @@ def render_part(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int
 
 
 def part_floor(part: Part, alpha: np.ndarray | None) -> float:
-    """The noise floor (``rel_mse_floor``) of the chunks a part holds: over the medium pixels (``alpha``), over all
-    pixels where the image shows no medium; infinite below 2 chunks."""
-    if part.done < 2:
+    """The noise floor of the chunks a part holds (:func:`target_floor`)."""
+    return target_floor(part.total, part.total_sq, part.done, alpha)
+
+
+def target_floor(total: np.ndarray, total_sq: np.ndarray, n: int, alpha: np.ndarray | None) -> float:
+    """The noise floor (``rel_mse_floor``) a ``reference.rel_mse_floor`` target is held against, of ``n`` chunks'
+    sums: over the medium pixels (``alpha``), over all pixels where the image shows no medium; infinite below 2
+    chunks."""
+    if n < 2:
         return math.inf
-    floor_all, floor_med = reference_noise_floor(part.total, part.total_sq, part.done, alpha)
+    floor_all, floor_med = reference_noise_floor(total, total_sq, n, alpha)
     return floor_med if floor_med >= 0 else floor_all
 
 
@@ -238,14 +249,14 @@ def _gather(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int
     return parts, owner, n_chunks, seed, chash, shash
 
 
-def _sums(parts: list[Part]) -> tuple[np.ndarray, np.ndarray, int]:
-    """The parts' sums added in chunk order, and the number of chunks in them."""
+def _sums(parts: list[Part]) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The parts' sums added in chunk order, the number of chunks in them and of parts that hold any."""
     done = [p for p in parts if p.done]
     total, total_sq = done[0].total.copy(), done[0].total_sq.copy()
     for p in done[1:]:
         total += p.total
         total_sq += p.total_sq
-    return total, total_sq, sum(p.done for p in done)
+    return total, total_sq, sum(p.done for p in done), len(done)
 
 
 def merge_parts(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int) -> np.ndarray:
@@ -257,10 +268,10 @@ def merge_parts(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int
     missing = [i for i in range(n_chunks) if i not in owner]
     if missing:
         runs = ", ".join(f"{r.start}:{r.stop}" for r in _ranges(missing))
-        raise NRCError(f"the reference {Path(out).name} misses {len(missing)} of {n_chunks} chunks; render "
-                       f"reference.chunks={runs} (each range as a job), then merge again")
-    total, total_sq, n = _sums(parts)
-    return _write(cfg, out, total, total_sq, n, chunk_spp, seed, chash, shash, len([p for p in parts if p.done]))
+        raise MissingChunks(f"the reference {Path(out).name} misses {len(missing)} of {n_chunks} chunks; render "
+                            f"reference.chunks={runs} (each range as a job), then merge again")
+    total, total_sq, n, n_parts = _sums(parts)
+    return _write(cfg, out, total, total_sq, n, chunk_spp, seed, chash, shash, n_parts)
 
 
 def merge_to_floor(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int, target: float,
@@ -272,25 +283,24 @@ def merge_to_floor(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: 
     and the ranges to render, unless every chunk of the ``total_spp`` reference is there: then the reference is
     written with a warning (``scene.integrator.spp`` is the most a floor target renders)."""
     parts, owner, n_chunks, seed, chash, shash = _gather(cfg, out, chunk_spp, total_spp)
-    total, total_sq, n = _sums(parts)
+    total, total_sq, n, n_parts = _sums(parts)
     alpha = medium_alpha(load_scene(cfg.scene, resolve_device(cfg.get("device", "cpu"))))
-    floor_all, floor_med = reference_noise_floor(total, total_sq, n, alpha)
-    floor = floor_med if floor_med >= 0 else floor_all
-    if n < 2 or floor > target:
+    floor = target_floor(total, total_sq, n, alpha)
+    if floor > target:
         missing = [i for i in range(n_chunks) if i not in owner]
         need = n_chunks if n < 2 else min(n_chunks, math.ceil(n * floor / target))
         if len(missing) and need > n:
             todo = missing[:need - n]
             runs = ", ".join(f"{r.start}:{r.stop}" for r in _ranges(todo))
-            raise NRCError(f"the reference {Path(out).name} has {n} chunks, whose noise floor "
-                           f"{'(from 2 chunks on)' if n < 2 else f'{floor:.3g}'} is above reference.rel_mse_floor="
-                           f"{target:g}: about {need} chunks are needed; render reference.chunks={runs}, then merge "
-                           "again")
+            raise MissingChunks(f"the reference {Path(out).name} has {n} chunks, whose noise floor "
+                                f"{'(from 2 chunks on)' if n < 2 else f'{floor:.3g}'} is above "
+                                f"reference.rel_mse_floor={target:g}: about {need} chunks are needed; render "
+                                f"reference.chunks={runs}, then merge again")
         log.warning("the reference's noise floor %.3g is above reference.rel_mse_floor=%g with every chunk of "
                     "scene.integrator.spp=%d: written as it is (raise scene.integrator.spp for more)", floor, target,
                     total_spp)
     path = Path(exr_for(n * chunk_spp))
-    _write(cfg, path, total, total_sq, n, chunk_spp, seed, chash, shash, len([p for p in parts if p.done]),
+    _write(cfg, path, total, total_sq, n, chunk_spp, seed, chash, shash, n_parts,
            {"rel_mse_floor_target": float(target)}, alpha)
     return path
 

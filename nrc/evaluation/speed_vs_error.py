@@ -332,7 +332,7 @@ def checkpoints(n_max: int) -> list[int]:
 
 def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
     """Error of the running mean at 1, 2, 4, ... frames; ``acc_repeats`` independent sequences."""
-    nrc_frames = getattr(args, "acc_nrc_frames", None) or args.acc_max_frames
+    nrc_frames = args.acc_nrc_frames or args.acc_max_frames
     marks = sorted(set(checkpoints(args.acc_max_frames)) | (set() if cfg.renderer.name == "pt" else {nrc_frames}))
     seqs: list[dict[int, tuple[float, np.ndarray]]] = []  # per repeat: frames -> (cumulative time, mean)
     lasts: list[dict[int, tuple[float, np.ndarray]]] = []  # NRC with --acc-nrc-last: frames -> (time, that frame)
@@ -365,7 +365,7 @@ def run_accumulate(name, cfg, scene, scorer, args, log) -> list[dict[str, Any]]:
                 state["t"] += float(stats["time_frame_s"])
                 if frame + 1 in marks:
                     rec[frame + 1] = (state["t"], np.nan_to_num(np.asarray(accumulated, np.float64)))
-                    if getattr(args, "acc_nrc_last", False):
+                    if args.acc_nrc_last:
                         last[frame + 1] = (state["t"], np.nan_to_num(np.asarray(image, np.float64)))
                 if state["t"] > args.acc_budget_s:
                     raise Stop
@@ -451,6 +451,11 @@ def pareto(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
             hull.pop()
         hull.append(p)
     return hull
+
+
+def baseline_of(rows: list[dict[str, Any]]) -> list[str] | None:
+    """Every raw path-tracer configuration among ``rows``: the baseline of a summary (None without any)."""
+    return list(dict.fromkeys(r["config"] for r in rows if r["renderer"] == "pt" and not r.get("denoised"))) or None
 
 
 def baseline_names(baseline: str | list[str] | None) -> list[str]:
@@ -832,7 +837,7 @@ def run_as_jobs(args: Any, argv: list[str], configs: dict[str, list[str]], base_
     parts = {name: json.loads(part_path(args.out, name).read_text()) for name in configs}
     check_one_machine_type(parts, "speed_vs_error")
     rows = [r for p in parts.values() for r in p["rows"]]
-    baseline = list(dict.fromkeys(r["config"] for r in rows if r["renderer"] == "pt" and not r.get("denoised"))) or None
+    baseline = baseline_of(rows)
     first = next(iter(parts.values()))["meta"]
     meta = {**first, "argv": argv, "baseline": baseline, "skipped": [s for p in parts.values() for s in p["meta"]["skipped"]],
             "nodes": {name: p["meta"].get("node") for name, p in parts.items()},
@@ -868,7 +873,7 @@ def replot(out: Path) -> int:
     meta.setdefault("git", "unknown")
     add_corrected(rows, meta["rel_mse_floor"], meta["rel_mse_floor_medium"])
     # every pt configuration of the run is part of the baseline (older summaries named only the first)
-    baseline = meta["baseline"] = list(dict.fromkeys(r["config"] for r in rows if r["renderer"] == "pt" and not r.get("denoised"))) or None
+    baseline = meta["baseline"] = baseline_of(rows)
     write_outputs(out, rows, all_ratios(rows, baseline), all_crossovers(rows, baseline), meta)
     print(f"rewrote {out}")
     return 0
