@@ -281,6 +281,12 @@ class NRCCollector(Collector):
             self.rec_d[slot] = F[ly.f("d_in")][:, r].T
             self.rec_valid[slot] = True
 
+    def after_advance_ahead(self, ly: Any, I: Tensor) -> bool:
+        """A live training path with fewer than V vertices can still write a record (its records are written at its
+        first V vertices: ``decide``); a record already current was written by the last :meth:`after_advance`."""
+        n = I[ly.i("n")]
+        return bool(((I[ly.i("occupied")] != 0) & (I[ly.i("rec_base")] >= 0) & (n < self.V)).any())
+
     def vertex_pass(self, ly: Any, F_in: Tensor, I_in: Tensor, F_out: Tensor, I_out: Tensor) -> Tensor | None:
         """Returns the slots continued past their cache termination at this vertex (``renderer.debias``)."""
         here = None

@@ -47,6 +47,8 @@ COMPACT_BELOW = 0.9
 # tracking step and the vertices it reaches, one thread), TAIL_CALLS between harvests (docs/benchmarks.md)
 TAIL_SLOTS = 256
 TAIL_CALLS = 16
+# the tail harvests (and compacts) once more than this fraction of its slots is free, or all are
+TAIL_FREE = 0.25
 
 
 class BatchQueue:
@@ -164,7 +166,7 @@ class Wavefront:
 
     def _harvest(self, F: Tensor, I: Tensor, done: Tensor, acc: Tensor) -> None:
         ly, col = self.layout, self.collector
-        Fd, Id = F[:, done], I[:, done]
+        Fd, Id = F.index_select(1, done), I.index_select(1, done)  # (index_select: a third of F[:, done]'s time)
         L = Fd[ly.f("L")]  # (3 R, K)
         if ly.rows == 1:
             acc.index_add_(0, col.rows(ly, Id, 0), L.T)
@@ -349,16 +351,20 @@ class Wavefront:
     def _tail(self, F: Tensor, I: Tensor, acc: Tensor, on_done: Callable[[int], None] | None,
               keep: Callable[[Tensor], Tensor] | None) -> tuple[Tensor, Tensor] | None:
         """The last live slots (the queue is empty, at most :data:`TAIL_SLOTS` live): runs of
-        :data:`TAIL_CALLS` fused calls (a tracking step and the vertices it reaches, :meth:`Machine.advance`), then
-        a harvest and, below 3/4 live, a compaction. A path takes the same steps with the same draws as in the
-        driver's main loop; only when its slot is harvested differs."""
+        :data:`TAIL_CALLS` fused calls (a tracking step and the vertices it reaches, :meth:`Machine.advance`), then,
+        once more than :data:`TAIL_FREE` of the slots are free, a harvest and a compaction. A path takes the same
+        steps with the same draws as in the driver's main loop; only when its slot is harvested differs. The
+        collector's :meth:`~nrc.render.wavefront.program.Collector.after_advance` runs after each call until
+        :meth:`~nrc.render.wavefront.program.Collector.after_advance_ahead` says no live slot needs it."""
         c, tm, ly, col = self.counts, self.timers, self.layout, self.collector
         F, I = self._compact(F, I, 2)
+        ahead = col.after_advance_ahead(ly, I)
         while True:
             t_st = time.perf_counter()
             for _ in range(TAIL_CALLS):
                 F, I = self.machine.advance(F, I, self.inputs)
-                col.after_advance(ly, F, I)
+                if ahead:
+                    col.after_advance(ly, F, I)
             S = I.shape[1]
             c["iterations"] += TAIL_CALLS
             c["tail_calls"] = c.get("tail_calls", 0) + TAIL_CALLS
@@ -366,18 +372,21 @@ class Wavefront:
             t_rf = time.perf_counter()
             tm["tail"] = tm.get("tail", 0.0) + t_rf - t_st
             free = self._free(I)
-            idx = free.nonzero().squeeze(1)
-            if len(idx):
+            n_free = int(free.sum())
+            kept = keep is not None and self._only_kept(I, keep)
+            # a harvest costs ~20 fused calls (NRC's: more): finished slots wait in the working set (a few tenths
+            # of a µs a call each) until a quarter of it is free, then leave it in one harvest and a compaction
+            if n_free == S or kept or (n_free > TAIL_FREE * S and S > 2):
+                idx = free.nonzero().squeeze(1)
                 self._retire(F, I, idx, acc, on_done)
-            live = S - len(idx)
-            if live == 0:
-                tm["refill"] += time.perf_counter() - t_rf
-                return None
-            if keep is not None and self._only_kept(I, keep):
-                tm["refill"] += time.perf_counter() - t_rf
-                return self._carry_out(F, I)
-            if live < 0.75 * S and S > 2:
+                if n_free == S:
+                    tm["refill"] += time.perf_counter() - t_rf
+                    return None
+                if kept:
+                    tm["refill"] += time.perf_counter() - t_rf
+                    return self._carry_out(F, I)
                 F, I = self._compact(F, I, 2)
+                ahead = ahead and col.after_advance_ahead(ly, I)
             tm["refill"] += time.perf_counter() - t_rf
 
     def _finish(self, acc: Tensor) -> None:

@@ -194,6 +194,11 @@ class Collector:
         <nrc.render.wavefront.machine.Machine.advance>`, which ran the vertices its slots reached without a vertex
         pass): what the collector keeps of them from the state (``pt``: nothing; ``nrc``: the training records)."""
 
+    def after_advance_ahead(self, ly: Any, I: Tensor) -> bool:
+        """Whether :meth:`after_advance` can still find something in the live slots ``I`` (checked after it ran;
+        once ``False`` the driver's tail stops calling it, since a tail starts no new path)."""
+        return False
+
     def vertex_pass(self, ly: Any, F_in: Tensor, I_in: Tensor, F_out: Tensor, I_out: Tensor) -> Any:
         """The slots of a vertex pass, before and after the step; returns what :meth:`shadow_rows` needs."""
         if self.watchers:
