@@ -371,13 +371,24 @@ def test_the_fused_tail_writes_the_training_records_of_the_vertex_passes(monkeyp
     state after each call: with the tail off, from the first call on, or only at the end, the same records reach
     the cache (bitwise) and the same image (a pixel's samples may be harvested in another order). Carried
     (``carry_frames`` 4), a frame stops at another call with the tail, so its late records arrive in other frames:
-    the image (frozen cache) is still the same."""
+    the image (frozen cache) is still the same. Once every live training path is past its V-th vertex the tail
+    stops reading records (``after_advance_ahead``): fewer reads than fused calls, the same records."""
     import nrc.render.wavefront.driver as drv
+    from nrc.render.radiance_caching.vertex import NRCCollector
 
-    out = {}
+    reads = {"n": 0}
+    after_advance = NRCCollector.after_advance
+
+    def counted(self, *args):
+        reads["n"] += 1
+        return after_advance(self, *args)
+
+    monkeypatch.setattr(NRCCollector, "after_advance", counted)
+    out, n_reads = {}, {}
     for slots, calls in ((0, 8), (1 << 20, 1), (16, 3)):
         monkeypatch.setattr(drv, "TAIL_SLOTS", slots)
         monkeypatch.setattr(drv, "TAIL_CALLS", calls)
+        reads["n"] = 0
         cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun_sky", "scene.integrator.spp=2",
                        "scene.volume.density_scale=3", "renderer.training.unbiased_fraction=0.5",
                        f"renderer.training.carry_frames={carry}", "renderer.backend=eager"])
@@ -386,8 +397,11 @@ def test_the_fused_tail_writes_the_training_records_of_the_vertex_passes(monkeyp
         run_compiled_structure_eagerly(r.tracer.core)  # shadow rays inside the step: the tail can fuse
         frames = [r.render_frame(f) for f in range(3)]
         out[slots] = ([f[0] for f in frames], cache.batches, sum(f[1].get("tail_calls", 0) for f in frames))
+        n_reads[slots] = reads["n"]
     # carried: a frame stops once only training paths are left, before 16 slots are (no tail then)
     assert out[0][2] == 0 and out[1 << 20][2] > 0 and (out[16][2] > 0 or carry)
+    # (carried, a frame leaves its tail as soon as only training paths are live: their records may still be ahead)
+    assert n_reads[0] == 0 and 0 < n_reads[1 << 20] and (n_reads[1 << 20] < out[1 << 20][2] or carry)
     for slots in (1 << 20, 16):
         images, batches, _ = out[slots]
         assert len(batches) == len(out[0][1]) > 0
