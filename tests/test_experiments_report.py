@@ -191,8 +191,8 @@ def test_crossover_summary_states_where_nrc_pays_off(tmp_path):
     (tmp_path / "results" / ex.CROSSOVER / "map.png").write_bytes(b"png")
     image, caption = ex.crossover_figure(tmp_path)
     assert image == f"[![Where NRC pays off: the crossover map](docs/results/{ex.CROSSOVER}/map.png)](docs/results.md)"
-    assert "NRC wins nowhere (best 1.5x at optical depth 98)" in caption
-    assert "warm cache (150 frames): 0.7x at optical depth 98" in caption
+    assert "NRC wins nowhere (best 1.5x at optical depth 98, albedo 0.99)" in caption
+    assert "warm cache: 0.7x at optical depth 98" in caption
     lines = ex.block_markdown([image, caption])
     assert lines[0] == image and lines[1] == "" and len(lines) == 4  # the plot and a caption of two lines
     crossover_map(tmp_path, [(98.0, 0.99, 1.2)], "crossover_480x270")

@@ -722,12 +722,12 @@ def crossover_figure(docs: Path) -> list[str] | None:
     best = min(pts, key=lambda p: p["ratio_oidn"])
     verdict = (f"NRC wins from optical depth {wins[0]['tau_median']:.0f} on ({len(wins)} of {len(pts)} points)"
                if wins else f"NRC wins nowhere (best {best['ratio_oidn']:.2g}x at optical depth "
-               f"{best['tau_median']:.0f})")
+               f"{best['tau_median']:.0f}, albedo {best['albedo']:g})")
     warm = [p for p in ((_read_json(docs / "results" / (CROSSOVER + "_warm") / "map.json") or {}).get("points", []))
             if p.get("ratio_oidn") is not None]
     if warm:
         w = min(warm, key=lambda p: p["ratio_oidn"])
-        verdict += f"; warm cache (150 frames): {w['ratio_oidn']:.2g}x at optical depth {w['tau_median']:.0f}"
+        verdict += f"; warm cache: {w['ratio_oidn']:.2g}x at optical depth {w['tau_median']:.0f}"
     return [f"[![Where NRC pays off: the crossover map](docs/results/{CROSSOVER}/map.png)](docs/results.md)",
             f"NRC + OIDN's relMSE over the path tracer + OIDN's at equal time per frame after 30 frames, {size} "
             f"(below 1: NRC wins). {verdict}."]
