@@ -31,6 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nrc.config import CONF_DIR, absolute_paths, code_version, resolve_device
 from nrc.errors import NRCError
+from nrc.io.atomic import write_text_atomically
 
 log = logging.getLogger("nrc")
 
@@ -342,10 +343,7 @@ def _record(path: Path, updates: dict[str, Any]) -> None:
     try:
         memo = json.loads(path.read_text()) if path.is_file() else {}
         memo = {**(memo if isinstance(memo, dict) else {}), **updates}
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(memo, indent=1))
-        tmp.replace(path)
+        write_text_atomically(path, json.dumps(memo, indent=1))
     except (OSError, ValueError) as exc:  # a read-only cache: the next sweep finds out again
         log.info("sweep setup: could not record the steps (%s)", exc)
 

@@ -69,3 +69,21 @@ def test_procedural_clouds_come_from_the_cache_unchanged(root, monkeypatch):
     assert again.dtype == torch.float32 and torch.equal(again, first)
     with pytest.raises(AssertionError, match="generated again"):  # another seed is another cloud
         procedural.procedural_cloud(24, seed=4, kind="cumulus")
+
+
+def test_an_atomic_write_that_fails_leaves_the_previous_file(tmp_path):
+    """A write killed half-way (here: an exception after some bytes) leaves the file as it was and no temporary."""
+    from nrc.io.atomic import write_atomically, write_text_atomically
+
+    path = tmp_path / "made" / "memo.json"
+    write_text_atomically(path, "one")
+
+    def half(f):
+        f.write(b"tw")
+        raise RuntimeError("killed")
+
+    with pytest.raises(RuntimeError):
+        write_atomically(path, half)
+    assert path.read_text() == "one" and [p.name for p in path.parent.iterdir()] == ["memo.json"]
+    write_atomically(path, lambda f: f.write(b"two"), fsync=True)
+    assert path.read_text() == "two"

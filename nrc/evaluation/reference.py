@@ -40,6 +40,7 @@ from tqdm import tqdm
 from nrc.config import resolve_device
 from nrc.errors import ConfigError, NRCError
 from nrc.io import read_exr, write_exr
+from nrc.io.atomic import write_atomically
 from nrc.render.preview import camera_transmittance
 from nrc.render.pt import PathTracer
 from nrc.scene import Scene, load_scene
@@ -183,10 +184,8 @@ def _save_checkpoint(
     path: Path, total: np.ndarray, total_sq: np.ndarray, done: int, chash: str, chunk_spp: int, seed: int
 ) -> None:
     """Write the checkpoint atomically (a kill mid-write leaves the previous one intact)."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, sum=total, sum_sq=total_sq, chunks_done=done, config_hash=chash, chunk_spp=chunk_spp, seed=seed)
-    os.replace(tmp, path)
+    write_atomically(path, lambda f: np.savez(f, sum=total, sum_sq=total_sq, chunks_done=done, config_hash=chash,
+                                              chunk_spp=chunk_spp, seed=seed))
 
 
 def _render_chunk(scene: Scene, cfg: DictConfig, chunk_spp: int, seed: int) -> np.ndarray:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,7 @@ from tqdm import tqdm
 
 from nrc.config import resolve_device
 from nrc.errors import ConfigError, NRCError
+from nrc.io.atomic import write_atomically
 from nrc.evaluation.reference import (REF_SEED, REF_SEEDS_PER_BASE, _chunk_count, _render_chunk, config_hash,
                                       medium_alpha, reference_base_seed, reference_noise_floor, scene_hash,
                                       write_reference_exr)
@@ -115,14 +115,10 @@ class Part:
 
     def write(self) -> None:
         """Atomically (a kill mid-write leaves the previous file)."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name(f"{self.path.stem}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as f:
-            np.savez(f, version=PART_VERSION, sum=self.total, sum_sq=self.total_sq, first=self.first,
-                     stop=self.stop, done=self.done, chunk_spp=self.chunk_spp, base_seed=self.base_seed,
-                     n_chunks=self.n_chunks, config_hash=self.config_hash, scene_hash=self.scene_hash,
-                     device=self.device, torch=self.torch)
-        os.replace(tmp, self.path)
+        write_atomically(self.path, lambda f: np.savez(
+            f, version=PART_VERSION, sum=self.total, sum_sq=self.total_sq, first=self.first, stop=self.stop,
+            done=self.done, chunk_spp=self.chunk_spp, base_seed=self.base_seed, n_chunks=self.n_chunks,
+            config_hash=self.config_hash, scene_hash=self.scene_hash, device=self.device, torch=self.torch))
 
 
 def _plan(cfg: DictConfig, chunk_spp: int, total_spp: int) -> tuple[int, int]:

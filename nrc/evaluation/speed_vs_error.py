@@ -64,6 +64,7 @@ import torch
 REPO = Path(__file__).resolve().parents[2]  # the checkout (data/references, outputs/ and git live there)
 
 from nrc.config import CONF_DIR, code_version, compose, resolve_device  # noqa: E402
+from nrc.io.atomic import write_text_atomically  # noqa: E402
 from nrc.metrics import (flicker, hdr_flip, mean_ratio, mean_relative_bias, medium_mask, mse,  # noqa: E402
                                    normalised_rel_mse, rel_mse, relative_variance)
 from nrc.evaluation.reference import (REF_SEED, check_independent, default_reference_path, read_reference,  # noqa: E402
@@ -766,11 +767,7 @@ def run(args: Any, overrides: list[str], argv: list[str]) -> int:
         add_corrected(rows, ref.rel_mse_floor, ref.rel_mse_floor_medium)
         ratios = all_ratios(rows, baseline)
         if args.only:  # one configuration of a run as jobs: its rows only, merged by the parent
-            part = part_path(args.out, args.only)
-            part.parent.mkdir(parents=True, exist_ok=True)
-            tmp = part.with_suffix(".tmp")
-            tmp.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
-            tmp.replace(part)
+            write_text_atomically(part_path(args.out, args.only), json.dumps({"meta": meta, "rows": rows}, indent=2))
         else:
             write_outputs(args.out, rows, ratios, cross, meta)
         return meta, ratios, cross

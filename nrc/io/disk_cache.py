@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nrc.io.atomic import write_atomically
+
 
 def cache_root() -> Path | None:
     """The cache root (its folders are made when an entry is stored), or None when ``NRC_CACHE_DIR=off``."""
@@ -51,10 +53,7 @@ def cached_array(kind: str, params: tuple, sources: Sequence[str | Path], make: 
             warnings.warn(f"the cached {kind} {path} is unreadable ({exc}); making it again", stacklevel=2)
     array = make()
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npy")
-        np.save(tmp, array, allow_pickle=False)
-        os.replace(tmp, path)
+        write_atomically(path, lambda f: np.save(f, array, allow_pickle=False))
     except OSError:
         pass
     return array

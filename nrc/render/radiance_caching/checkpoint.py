@@ -22,7 +22,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import zlib
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ import torch
 from omegaconf import OmegaConf
 
 from nrc.errors import ConfigError
+from nrc.io.atomic import write_atomically
 
 MAGIC = b"NRCCKPT\n"
 VERSION = 2
@@ -56,12 +56,7 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> int:
     buf = io.BytesIO()
     torch.save({"version": VERSION, **state}, buf)
     payload = zlib.compress(buf.getvalue(), 1)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(MAGIC + hashlib.sha256(payload).digest() + payload)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    write_atomically(path, lambda f: f.write(MAGIC + hashlib.sha256(payload).digest() + payload), fsync=True)
     return len(MAGIC) + 32 + len(payload)
 
 
