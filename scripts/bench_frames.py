@@ -4,8 +4,9 @@
 Renders ``--frames`` NRC frames (``scene.integrator.spp=1`` a frame) of a scene type and ``--pt-repeats`` path-traced
 1-spp images of the same scene (new seeds each), and prints, per renderer, the median, p95 and maximum frame time
 (NRC: frames ``--skip`` .. ``--frames``-1; carried training paths make its frames uneven), NRC's trace / infer /
-train split, the step calls per frame, the milliseconds per call, the scattering events per frame and the trace's
-cost per event. Start-up (compile or cache load) is reported apart, with the whole process's time. Not a test: speed
+train split (train: what the frame waited for; its steps' own time apart, run beside the next frame's trace with
+``renderer.training.overlap``), the step calls per frame, the milliseconds per call, the scattering events per frame
+and the trace's cost per event. Start-up (compile or cache load) is reported apart, with the whole process's time. Not a test: speed
 lives here and in docs/benchmarks.md.
 
     python scripts/bench_frames.py [--preset thick] [--width 160 --height 90] [--backend compiled] [--device cpu]
@@ -75,6 +76,8 @@ def main() -> None:
     events = h["scatter_events"][k]
     out_nrc = {
         "frame_s": spread(frames), **{f"{s}_s": statistics.median(h[f"time_{s}_s"][k]) for s in ("trace", "infer", "train")},
+        "train_work_s": statistics.median(h.get("time_train_work_s", h["time_train_s"])[k]),
+        "overlap": result.metrics["train_beside_trace"] > 0,
         "calls": statistics.median(calls), "ms_per_call": 1e3 * statistics.median(t / c for t, c in zip(trace, calls)),
         "events": statistics.median(events), "us_per_event": 1e6 * statistics.median(t / e for t, e in zip(trace, events)),
         "startup_s": sum(h.get("time_compile_s", [])), "process_s": nrc_process, "backend": result.metrics["backend"],
@@ -104,7 +107,8 @@ def main() -> None:
            "ratio_per_event": out_nrc["us_per_event"] / out_pt["us_per_event"]}
     for name, o in (("nrc", out_nrc), ("pt 1 spp", out_pt)):
         f = o["frame_s"]
-        extra = (f", trace {o['trace_s']:.3f} / infer {o['infer_s']:.3f} / train {o['train_s']:.3f} s"
+        extra = (f", trace {o['trace_s']:.3f} / infer {o['infer_s']:.3f} / train {o['train_s']:.3f} s (steps "
+                 f"{o['train_work_s']:.3f} s{', beside the next trace' if o['overlap'] else ''})"
                  if "trace_s" in o else f", {o['tail_calls']:.0f} tail calls")
         print(f"{name:8s} frame {f['median']:.3f} s (p95 {f['p95']:.3f}, max {f['max']:.3f}){extra}; {o['calls']:.0f} "
               f"calls, {o['ms_per_call']:.3f} ms a call; {o['events']:.0f} events, {o['us_per_event']:.2f} us an event; "

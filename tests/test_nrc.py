@@ -517,6 +517,61 @@ def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
     np.testing.assert_allclose(rest.image, result.image, rtol=1e-5, atol=1e-6)
 
 
+def _overlapped(tmp_path, name, overrides, on_frame=None):
+    """A short online-training run with the compiled structure's one-thread tail (run eagerly): its result and the
+    names of the threads its training steps ran on."""
+    import threading
+
+    cfg = compose(["renderer=nrc", *TRAIN, "renderer.training.unbiased_fraction=0.5", "renderer.backend=eager",
+                   *overrides])
+    r = NRCRenderer(load_scene(cfg.scene), cfg)
+    run_compiled_structure_eagerly(r.tracer.core)
+    threads = []
+    train_step = r.cache.train_step
+
+    def spy(*batch):
+        threads.append(threading.current_thread().name)
+        return train_step(*batch)
+
+    r.cache.train_step = spy
+    (tmp_path / name).mkdir()
+    r.attach_output(tmp_path / name)
+    return r.render(on_frame=on_frame), threads
+
+
+@pytest.mark.slow
+def test_training_beside_the_next_trace_makes_the_same_updates(tmp_path):
+    """``renderer.training.overlap``: a frame's steps run on a second thread once the next frame's trace is down to
+    its one-thread tail, before that frame's inference. The same updates in the same order as training at the frame's
+    end: the same losses and images within float tolerance (one intra-op thread against all). A checkpoint joins the
+    waiting steps first, on the same thread, so a run with checkpoints and one resumed from them equal the run
+    without (float tolerance of the resume test: the same arithmetic)."""
+    import shutil
+
+    base = ["frames=4", "renderer.training.carry_frames=0"]
+    frames = [*base, "renderer.training.overlap=true"]
+    off, off_threads = _overlapped(tmp_path, "off", base)  # the default: at the frame's end
+    on, on_threads = _overlapped(tmp_path, "on", frames)
+    h = on.metrics["history"]
+    assert all(n == "MainThread" for n in off_threads) and not any(off.metrics["history"]["train_beside_trace"])
+    assert on_threads and all(n.startswith("nrc-train") for n in on_threads)
+    assert sum(h["train_beside_trace"]) >= 2 and h["train_steps"] == off.metrics["history"]["train_steps"]
+    assert h["train_steps"][-1] > 0 and on.metrics["cache_steps"] == off.metrics["cache_steps"]
+    np.testing.assert_allclose(on.metrics["loss_per_frame"], off.metrics["loss_per_frame"], rtol=1e-3)
+    np.testing.assert_allclose(on.image, off.image, rtol=1e-3, atol=1e-5)
+
+    def keep_frame_2_checkpoint(frame, image, output, stats):
+        if frame == 2:  # written after frame 1: its steps were joined before it
+            shutil.copy(tmp_path / "ck" / "checkpoint.pt", tmp_path / "at2.pt")
+
+    ck, _ = _overlapped(tmp_path, "ck", [*frames, "renderer.checkpoint_every=2"], keep_frame_2_checkpoint)
+    assert ck.metrics["history"]["train_beside_trace"].count(False) > h["train_beside_trace"].count(False)
+    resumed, _ = _overlapped(tmp_path, "resumed", [*frames, f"renderer.resume={tmp_path / 'at2.pt'}"])
+    for run in (ck, resumed):
+        np.testing.assert_allclose(run.metrics["loss_per_frame"], on.metrics["loss_per_frame"], rtol=1e-5)
+        np.testing.assert_allclose(run.image, on.image, rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize(
     "override, message",
     [

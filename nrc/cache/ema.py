@@ -34,8 +34,8 @@ class WeightEMA:
         """Fold the current raw weights in as ``w_k`` (call after each optimiser step)."""
         self.step += 1
         rate = (1.0 - self.alpha) / (1.0 - self.alpha**self.step)
-        for s, w in zip(self.shadow.parameters(), self.model.parameters()):
-            s.lerp_(w, rate)
+        # one call for all parameters (the per-tensor lerp_, batched: the same arithmetic)
+        torch._foreach_lerp_(list(self.shadow.parameters()), list(self.model.parameters()), rate)
 
     def state_dict(self) -> dict[str, Any]:
         return {"step": self.step, "shadow": self.shadow.state_dict()}

@@ -1,10 +1,11 @@
 """Per-frame logging of the NRC renderer: TensorBoard scalars and images, and the run's history.
 
 TensorBoard tags: ``loss/step`` (every training step), ``loss/frame`` (mean per frame), ``time/<stage>``
-for ``trace`` (with its parts ``free_flight`` and ``shadow``), ``infer``, ``train`` and ``frame``
-(seconds), ``error/rel_mse`` and ``error/mse`` when a reference is given, ``error/flicker`` (the mean frame-to-frame change
-over the pixels that see the medium, relative to their mean), and ``debias/<counter>`` with ``renderer.debias`` (``debias.py``), ``reuse/<counter>`` with ``renderer.reuse``,
-``light/<counter>`` (the light sampling), ``image/frame`` /
+for ``trace`` (with its parts ``free_flight`` and ``shadow``), ``infer``, ``train`` (what the frame waited for),
+``train_work`` (the steps on the frame's records, wherever they ran) and ``frame`` (seconds), ``error/rel_mse``
+and ``error/mse`` when a reference is given, ``error/flicker`` (the mean frame-to-frame change over the pixels
+that see the medium, relative to their mean), ``debias/<counter>`` with ``renderer.debias`` (``debias.py``),
+``reuse/<counter>`` with ``renderer.reuse``, ``light/<counter>`` (the light sampling), ``image/frame`` /
 ``image/output`` (tone-mapped) every ``image_every`` frames, each with one exposure for the whole run (with
 ``exposure: auto``, the exposure of its first logged image) so the images show the convergence.
 """
@@ -43,6 +44,21 @@ class FrameLog:
             for i, loss in enumerate(losses):
                 self.writer.add_scalar("loss/step", loss, first_step + i)
 
+    def trained(self, frame: int, first_step: int, losses: list[float], seconds: float, beside: bool) -> None:
+        """The training steps on frame ``frame``'s records, taken after the frame was logged (``beside``: during the
+        next frame's trace; ``renderer.training.overlap``): its ``loss``, ``train_steps``, ``time_train_work_s`` and
+        ``train_beside_trace`` (history, ``loss/frame``, ``time/train_work``), and the steps (``loss/step``). The
+        history holds every frame from frame 0 on."""
+        loss = float(np.mean(losses)) if losses else None
+        for key, value in (("loss", loss), ("train_steps", len(losses)), ("time_train_work_s", seconds),
+                           ("train_beside_trace", beside)):
+            self.history[key][frame] = value
+        self.steps(first_step, losses)
+        if self.writer is not None:
+            self.writer.add_scalar("time/train_work", seconds, frame)
+            if loss is not None:
+                self.writer.add_scalar("loss/frame", loss, frame)
+
     def frame(self, frame: int, stats: dict[str, Any], images: dict[str, np.ndarray], force_images: bool = False
               ) -> None:
         """Record the scalars of ``stats`` (per-frame lists in :attr:`history`) and log them; the images every
@@ -52,7 +68,7 @@ class FrameLog:
         if self.writer is None:
             return
         for key, value in stats.items():
-            if key.startswith("time_") and key.endswith("_s"):
+            if key.startswith("time_") and key.endswith("_s") and value is not None:
                 self.writer.add_scalar(f"time/{key[5:-2]}", value, frame)
             elif key in ("loss", "rel_mse", "mse") and value is not None:
                 self.writer.add_scalar("loss/frame" if key == "loss" else f"error/{key}", value, frame)

@@ -52,6 +52,7 @@ caller can batch and filter them.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -214,6 +215,7 @@ class FrameTrace:
     finished: Tensor | None = None  # (pool paths,) bool: the pool paths that ended in this frame
     in_flight: Tensor | None = None  # (pool paths,) bool: carried into the next frame
     dropped: int = 0  # carried paths dropped at this frame's start (older than carry_frames)
+    fused_tail: bool = False  # the wavefront's structure has the one-thread tail (Wavefront.fusable)
     reuse: Any = None  # the render paths' reuse vertices (reuse.VertexRecord; None without reuse)
     # renderer.debias: (n_render, 3) each render sample's suffix row (a view of acc; zero where not continued),
     # query_cont (Q,) the queries of continued paths, whose (sample id, throughput at the vertex) are cont_pid,
@@ -311,10 +313,12 @@ class NRCPathTracer:
         return pool
 
     # ------------------------------------------------------------------ main loop
-    def trace(self, ps: PathSet, lights: LightSampler, rng: RandomSource, debias_q: float = 0.0) -> FrameTrace:
+    def trace(self, ps: PathSet, lights: LightSampler, rng: RandomSource, debias_q: float = 0.0,
+              on_tail: Callable[[], None] | None = None) -> FrameTrace:
         """Trace every path of ``ps`` and the training paths carried from earlier frames; NEE lands in ``acc``,
         cache terminations are returned as queries (``debias_q``: the probability that a render path goes on past
-        its cache termination, with ``renderer.debias``; in ``(0, 1]``).
+        its cache termination, with ``renderer.debias``; in ``(0, 1]``). ``on_tail()``: called once, when the
+        wavefront's last slots go on in one thread (:meth:`nrc.render.wavefront.driver.Wavefront.run`).
 
         ``acc`` (see the module docstring) persists across frames: its pixel, discard and suffix rows are cleared
         each frame, a pool block's rows when the block is started (:class:`TrainingPool`)."""
@@ -361,7 +365,7 @@ class NRCPathTracer:
         i_rec = layout.i("rec_base")
         keep = (lambda I: I[i_rec] >= 0) if self.carry_frames else None  # training paths may go on later
         pool.carry = wf.run(total, lambda ids: self._new_paths(ids, ps, rng, layout, discard, first_tid), acc,
-                            carry=pool.carry, keep=keep)
+                            carry=pool.carry, keep=keep, on_tail=on_tail)
         counts = dict(wf.counts)
         timers = {"trace_" + k: v for k, v in wf.timers.items()}
         timers["compile"] = core.last_startup_s
@@ -387,7 +391,8 @@ class NRCPathTracer:
             rec_d=pool.rec_d[tids.start * V:tids.stop * V], rec_valid=pool.rec_valid[tids.start * V:tids.stop * V],
             scattered=pool.scattered[tids], counts=counts, timers=timers,
             direct=acc[discard + 1:discard + 1 + n_rec] if indirect else None, reuse=rec, pool=pool,
-            finished=pool.finished & ~finished_before, in_flight=pool.in_flight(layout), dropped=dropped, **debias,
+            finished=pool.finished & ~finished_before, in_flight=pool.in_flight(layout), dropped=dropped,
+            fused_tail=wf.fusable, **debias,
         )
 
     # ------------------------------------------------------------------ checkpoints

@@ -10,7 +10,10 @@ Each frame (``frames`` in the root config):
 3. **train**: training targets by the backward recurrence (:mod:`nrc.render.radiance_caching.training_set`), the batch
    filter (``batch_filter`` group) picks the batches of the training image to train, invalid records are
    replaced from the ring buffer of earlier frames, one Adam step per batch, then the frame's valid
-   records enter the ring buffer.
+   records enter the ring buffer (:mod:`nrc.render.radiance_caching.trainer`). With ``renderer.training.overlap``
+   (CPU, the compiled structure) these steps run on a second core during the next frame's trace, once it is down to
+   its one-thread tail, and before that frame's inference: the same updates in the same order. The frame's
+   ``loss`` (and ``train_steps``, ``time_train_work_s``) is then logged with the next frame (``FrameLog.trained``).
 
 The output is the last frame's image, or the mean over frames with ``renderer.accumulate``. With a
 ``renderer.reference`` EXR every frame's relative MSE is logged. A checkpoint (cache weights, Adam, EMA,
@@ -56,6 +59,7 @@ from nrc.camera import Camera
 from nrc.render.radiance_caching.frame_log import LIGHT_SCALARS, FrameLog
 from nrc.render.radiance_caching.inference_filter import filtered_query
 from nrc.render.radiance_caching.paths import NRCPathTracer, PathSet
+from nrc.render.radiance_caching.trainer import Trainer, TrainingJob
 from nrc.render.radiance_caching.settings import (CARRY_FRAMES, UNBIASED_FRACTION, NRCSettings, app_checks,
                                                   auto_training_regime, ring_size)
 from nrc.render.result import RenderResult
@@ -150,6 +154,7 @@ class NRCRenderer:
         self.settings = st = replace(st, training=tr)  # the auto choices resolved
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)
+        self.trainer = Trainer(self.cache, self.ring, tr.records_per_path, self.device)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
         self.tracer = NRCPathTracer(scene, self.transmittance, st)
         self.reuse = make_reuse(st.reuse, scene.g, scene.integrator.spp, scene.grid, scene.albedo)
@@ -211,7 +216,8 @@ class NRCRenderer:
         ps = PathSet(camera, scene.integrator.spp, train_xy, unbiased, frame)
         lights = self.frame_lights(frame)
         q = st.debias.probability
-        trace = self.tracer.trace(ps, lights, rng, q)
+        trainer = self.trainer
+        trace = self.tracer.trace(ps, lights, rng, q, on_tail=trainer.start if trainer.pending is not None else None)
         reuse_stats: dict[str, Any] = {}
         if self.reuse is not None:  # the render paths' first-vertex direct light, by reservoir reuse
             contribution, reuse_stats = self.reuse.frame(trace.reuse, camera, lights, self.transmittance,
@@ -220,6 +226,8 @@ class NRCRenderer:
             pix = torch.div(torch.arange(ps.n_render, device=self.device), ps.spp, rounding_mode="floor")
             trace.acc.index_add_(0, pix, contribution)
         t1 = time.perf_counter()
+        trainer.join()  # the previous frame's training (overlap), before the cache is read
+        t1j = time.perf_counter()
 
         # Training paths' terminal queries read the raw weights (training.query_weights=raw; a cache without
         # separate raw weights, such as a test stub, answers them with query).
@@ -247,27 +255,30 @@ class NRCRenderer:
         t2 = time.perf_counter()
 
         records, valid, late = self._frame_records(trace, frame)
-        V = tr.records_per_path
         mask = torch.zeros(tr.n_paths, dtype=torch.bool, device=self.device)
         mask[self.train_order] = trace.scattered | trace.in_flight[trace.pool.tids(frame)]
         batches = self.batch_filter.batches(mask.view(tr.height, tr.width))
-        started = torch.full((len(valid),), frame, dtype=torch.long, device=self.device)
-        if late is not None:  # training paths of earlier frames that ended in this one
-            self._place_late(records, valid, started, late, batches, V)
-        losses = []
-        for a, b in batches:
-            batch = self.ring.fill(TrainingRecords(*(f[a * V:b * V] for f in records)), valid[a * V:b * V],
-                                   rng.generator)
-            losses.append(self.cache.train_step(*batch))
-        self.ring.push(records, valid, started)
+        suffix = None
         if st.debias.enabled and st.debias.train_on_suffixes:  # unbiased suffixes: more records for later batches
-            self.ring.push(*debias.suffix_records(trace, q), frame)
+            suffix = debias.suffix_records(trace, q)
+        n_valid = int(valid.sum())
+        job = TrainingJob(frame, records, valid, torch.full((len(valid),), frame, dtype=torch.long,
+                                                            device=self.device),
+                          late, batches, suffix, rng.generator.get_state())
+        # trained now, or beside the next frame's trace (where it has the one-thread tail: trainer.py)
+        trainer.submit(job, overlap=tr.overlap and self.device.type == "cpu" and trace.fused_tail)
+        losses, train_work, _ = trainer.take(frame).get(frame, ([], None, False))
         t3 = time.perf_counter()
 
+        # time_train_s: what the frame waited for training (its records, its steps run here or the wait for the
+        # second thread); time_train_work_s: its steps' own time, wherever they ran. With overlap, loss,
+        # train_steps and time_train_work_s come with the next frame (FrameLog.trained).
         stats: dict[str, Any] = {
-            "time_trace_s": t1 - t0, "time_infer_s": t2 - t1, "time_train_s": t3 - t2, "time_frame_s": t3 - t0,
+            "time_trace_s": t1 - t0, "time_infer_s": t2 - t1j, "time_train_s": (t1j - t1) + (t3 - t2),
+            "time_train_work_s": train_work, "time_frame_s": t3 - t0,
             "loss": float(np.mean(losses)) if losses else None, "nonfinite_predictions": nonfinite,
-            "train_batches": len(batches), "train_records_valid": int(valid.sum()),
+            "train_steps": len(losses), "train_beside_trace": False, "train_batches": len(batches),
+            "train_records_valid": n_valid,
             "training_pixels_scattering": int(trace.scattered.sum()),
             **self._carry_stats(trace, frame),
             **{f"time_{k}_s": v for k, v in trace.timers.items()}, **trace.counts, **infer_counts,
@@ -307,29 +318,6 @@ class NRCRenderer:
             started = pool.started[pool.block_of(ridx[other] // V)]
             late = (TrainingRecords(*(f[other] for f in recs)), ok[other], started)
         return records, valid, late
-
-    def _place_late(self, records: TrainingRecords, valid: Tensor, started: Tensor, late: tuple,
-                    batches: list[tuple[int, int]], V: int) -> None:
-        """Records of training paths of earlier frames that ended in this one (``late``): in order, into the
-        invalid records of the frame's trained batches (mostly this frame's paths still in flight, which take the
-        late paths' place: each late record is trained once, directly, as it would have been in its own frame);
-        the rest into the ring buffer, before the batches draw from it. ``records``, ``valid`` and ``started`` (the
-        frame each record's path started in) are updated in place."""
-        lrec, lok, lstart = late
-        in_batch = torch.zeros_like(valid)
-        for a, b in batches:
-            in_batch[a * V:b * V] = True
-        holes = (~valid & in_batch).nonzero().squeeze(1)
-        lv = lok.nonzero().squeeze(1)
-        k = min(len(holes), len(lv))
-        for dst, src in zip(records, lrec):
-            dst[holes[:k]] = src[lv[:k]]
-        valid[holes[:k]] = True
-        started[holes[:k]] = lstart[lv[:k]]
-        rest = lv[k:]
-        if len(rest):
-            self.ring.push(TrainingRecords(*(f[rest] for f in lrec)), torch.ones(len(rest), dtype=torch.bool,
-                                                                                   device=valid.device), lstart[rest])
 
     @staticmethod
     def _carry_stats(trace: Any, frame: int) -> dict[str, Any]:
@@ -421,6 +409,14 @@ class NRCRenderer:
             return None
 
     # ------------------------------------------------------------------ the frame loop
+    def _log_trained(self, log: FrameLog, step: int) -> int:
+        """Log the steps of the frames trained after they were logged (``renderer.training.overlap``); returns the
+        next step's number."""
+        for f, (losses, seconds, beside) in sorted(self.trainer.take().items()):
+            log.trained(f, step, losses, seconds, beside)
+            step += len(losses)
+        return step
+
     def render(self, progress: bool = False, on_frame: FrameCallback | None = None) -> RenderResult:
         """Run ``frames`` frames; ``on_frame(frame, image, output, stats)`` is called after each."""
         st, cam = self.settings, self.scene.camera
@@ -437,7 +433,7 @@ class NRCRenderer:
             start, accum, n_accum = self._resume(st.resume, log)
             if start >= self.frames:
                 raise ConfigError(f"renderer.resume: the checkpoint is at frame {start}, frames={self.frames}")
-        step = sum(log.history.get("train_batches", []))
+        step = sum(log.history.get("train_steps", []))
         output = accum
         previous = None  # the last frame's output (the flicker figure)
         t_start = t_saved = time.perf_counter()
@@ -446,6 +442,7 @@ class NRCRenderer:
         with _StopOnSignal() as stop:
             for frame in tqdm(range(start, self.frames), disable=not progress, desc="nrc", unit="frame", leave=False):
                 image, stats, losses = self.render_frame(frame)
+                step = self._log_trained(log, step)  # the previous frame's steps, taken beside this frame's trace
                 self._check_training(frame, stats)
                 if st.accumulate:
                     accum += image
@@ -475,9 +472,13 @@ class NRCRenderer:
                 due = (st.checkpoint_every and done % st.checkpoint_every == 0) or (
                     st.checkpoint_seconds is not None and time.perf_counter() - t_saved >= st.checkpoint_seconds)
                 if self.out_dir is not None and due and done < self.frames:
+                    self.trainer.join()  # this frame's steps first: the checkpoint holds no job half done
+                    step = self._log_trained(log, step)
                     self._checkpoint(self.out_dir / "checkpoint.pt", done, accum, n_accum, log)
                     t_saved = time.perf_counter()
         elapsed = time.perf_counter() - t_start
+        self.trainer.join()  # the last frame's steps
+        self._log_trained(log, step)
         if self.out_dir is not None and done > start:
             self._checkpoint(self.out_dir / "checkpoint.pt", done, accum, n_accum, log)
         log.close()
@@ -492,6 +493,8 @@ class NRCRenderer:
             "equiangular_segments": int(sum(h.get("equiangular_segments", []))),
             "training_image": [st.training.width, st.training.height], "training_auto": st.training.auto,
             "unbiased_fraction": st.training.unbiased_fraction, "carry_frames": st.training.carry_frames,
+            "training_overlap": st.training.overlap,  # the setting; frames whose steps ran beside the next trace:
+            "train_beside_trace": int(sum(h.get("train_beside_trace", []))),
             "optical_depth_median": self.optical_depth,
             "medium_pixels": self.medium_pixels,
             "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,

@@ -34,6 +34,8 @@ class TrainingSettings:
     carry_frames: int | None = 0  # later frames a training path still going at its frame's end may go on in (0: the
     # frame waits for it); None: auto (auto_training_regime)
     query_weights: str = "raw"  # cache weights of the training paths' terminal queries: ema | raw
+    overlap: bool = False  # CPU: a frame's training steps run on a second thread during the next frame's one-thread
+    # tail (nrc.render.radiance_caching.trainer); False: at the frame's end, on every thread
     paths_per_pixel: float = 1.0  # auto: training paths per pixel that sees the medium
     min_paths: int = 4096  # auto: the floor
     max_paths: int = 40960  # auto: the cap
@@ -112,6 +114,7 @@ class NRCSettings:
                 ring_buffer=_ring_buffer(tr),
                 carry_frames=_carry_frames(tr),
                 query_weights=tr.get_choice("query_weights", ["raw", "ema"]),
+                overlap=tr.get_bool("overlap"),
                 paths_per_pixel=tr.get_float("paths_per_pixel", lo=0.0, lo_open=True),
                 min_paths=tr.get_int("min_paths", lo=1),
                 max_paths=tr.get_int("max_paths", lo=1),

@@ -276,10 +276,7 @@ class NRCCollector(Collector):
         rec = I[ly.i("rec")]
         r = ((rec >= 0) & (I[ly.i("occupied")] != 0) & (I[ly.i("flight")] != VERTEX)).nonzero().squeeze(1)
         if len(r):
-            slot = rec[r]
-            self.rec_x[slot] = F[ly.f("o")][:, r].T
-            self.rec_d[slot] = F[ly.f("d_in")][:, r].T
-            self.rec_valid[slot] = True
+            self._record(rec[r], F[ly.f("o")][:, r].T, F[ly.f("d_in")][:, r].T)
 
     def after_advance_ahead(self, ly: Any, I: Tensor) -> bool:
         """A live training path with fewer than V vertices can still write a record (its records are written at its
@@ -310,12 +307,15 @@ class NRCCollector(Collector):
                 self.continued["beta"].append(beta)
         rec = I_out[ly.i("rec")]
         r = (rec >= 0).nonzero().squeeze(1)
-        if len(r):
-            slot = rec[r]
-            self.rec_x[slot] = F_out[ly.f("o")][:, r].T
-            self.rec_d[slot] = F_in[ly.f("d")][:, r].T  # the incoming direction (before scattering)
-            self.rec_valid[slot] = True
+        if len(r):  # the incoming direction (before scattering)
+            self._record(rec[r], F_out[ly.f("o")][:, r].T, F_in[ly.f("d")][:, r].T)
         return here
+
+    def _record(self, slots: Tensor, x: Tensor, d: Tensor) -> None:
+        """Write training records ``slots`` of the pool: position ``x`` and incoming direction ``d`` ``(n, 3)``."""
+        self.rec_x[slots] = x
+        self.rec_d[slots] = d
+        self.rec_valid[slots] = True
 
     def event(self, ly: Any, F_in: Tensor, I_in: Tensor, F_out: Tensor, I_out: Tensor,
               here: Tensor | None = None) -> VertexEvent:

@@ -248,21 +248,25 @@ class Wavefront:
 
     def run(self, total: int, new_paths: Callable[[Tensor], tuple[Tensor, Tensor]], acc: Tensor,
             on_done: Callable[[int], None] | None = None, carry: tuple[Tensor, Tensor] | None = None,
-            keep: Callable[[Tensor], Tensor] | None = None) -> tuple[Tensor, Tensor] | None:
+            keep: Callable[[Tensor], Tensor] | None = None,
+            on_tail: Callable[[], None] | None = None) -> tuple[Tensor, Tensor] | None:
         """Trace paths ``0 .. total-1`` (``new_paths(ids) -> (F, I)`` packs fresh ones) into ``acc``.
 
         ``carry``: slots of an earlier run that go on here (their rows of ``acc`` must still be valid). ``keep``:
         ``keep(I) -> (S,)`` bool marks the slots that may be left in flight: once every path has started and every
         live slot is marked, the run stops and returns those slots (``(F, I)``, to be carried into a later run);
-        without ``keep`` (or when nothing is left) it returns ``None``. The queues are traced before it returns.
+        without ``keep`` (or when nothing is left) it returns ``None``. ``on_tail()`` is called once, as the run's
+        last slots go on in one-thread fused calls (the tail): from then on the other cores are free (the NRC
+        renderer trains there). The queues are traced before it returns.
         """
-        out = self._run(total, new_paths, acc, on_done, carry, keep)
+        out = self._run(total, new_paths, acc, on_done, carry, keep, on_tail)
         self._finish(acc)
         return out
 
     def _run(self, total: int, new_paths: Callable[[Tensor], tuple[Tensor, Tensor]], acc: Tensor,
              on_done: Callable[[int], None] | None, carry: tuple[Tensor, Tensor] | None,
-             keep: Callable[[Tensor], Tensor] | None) -> tuple[Tensor, Tensor] | None:
+             keep: Callable[[Tensor], Tensor] | None,
+             on_tail: Callable[[], None] | None) -> tuple[Tensor, Tensor] | None:
         ly, dev, c, tm = self.layout, acc.device, self.counts, self.timers
         n_carry = 0 if carry is None else carry[0].shape[1]
         S = max(min(self.slots, total + n_carry), 2)
@@ -311,6 +315,8 @@ class Wavefront:
                             return self._carry_out(F, I)
                         if fusable and live <= TAIL_SLOTS:
                             tm["refill"] += time.perf_counter() - t_rf
+                            if on_tail is not None:
+                                on_tail()
                             return self._tail(F, I, acc, on_done, keep)
                         if live < COMPACT_BELOW * S and S > MIN_SLOTS:
                             F, I = self._compact(F, I, MIN_SLOTS)
@@ -327,9 +333,11 @@ class Wavefront:
             self._vertex_pass(F, I, acc)
             tm["scatter"] += time.perf_counter() - t_sc
 
-    def _only_kept(self, I: Tensor, keep: Callable[[Tensor], Tensor]) -> bool:
-        """Every slot with a path in flight is one ``keep`` lets the run leave behind."""
-        return not bool((~self._free(I) & ~keep(I)).any())
+    def _only_kept(self, I: Tensor, keep: Callable[[Tensor], Tensor], free: Tensor | None = None) -> bool:
+        """Every slot with a path in flight is one ``keep`` lets the run leave behind (``free``: ``_free(I)``, when
+        the caller has it)."""
+        free = self._free(I) if free is None else free
+        return not bool((~free & ~keep(I)).any())
 
     def _carry_out(self, F: Tensor, I: Tensor) -> tuple[Tensor, Tensor] | None:
         """The live slots, to go on in a later run (their work so far counted in this one)."""
@@ -373,7 +381,7 @@ class Wavefront:
             tm["tail"] = tm.get("tail", 0.0) + t_rf - t_st
             free = self._free(I)
             n_free = int(free.sum())
-            kept = keep is not None and self._only_kept(I, keep)
+            kept = keep is not None and self._only_kept(I, keep, free)
             # a harvest costs ~20 fused calls (NRC's: more): finished slots wait in the working set (a few tenths
             # of a µs a call each) until a quarter of it is free, then leave it in one harvest and a compaction
             if n_free == S or kept or (n_free > TAIL_FREE * S and S > 2):
