@@ -125,7 +125,9 @@ def frames(overrides: Overrides = None, *, out_dir: str | Path | None = None) ->
     """NRC frame by frame (``renderer=nrc`` is implied): yields each frame of ``frames`` as it is rendered (the
     renderer's own per-frame hook, ``NRCRenderer.render(on_frame=...)``); leaving the loop early stops the render
     after that frame. The frames are those of ``python -m nrc renderer=nrc`` (the last one bitwise). The render
-    runs in a helper thread that waits for the consumer, one frame at a time."""
+    runs in a helper thread that waits for the consumer, one frame at a time. With ``out_dir`` the run's logs and
+    checkpoints go there as the frames are rendered, and once the last frame is done its outputs too (``image.exr``,
+    ``preview.png``, ``metrics.json``: those of ``python -m nrc``); a loop left early writes no final outputs."""
     from nrc.app import prepare
 
     lines = as_overrides(overrides)
@@ -149,8 +151,12 @@ def _frame_iterator(job: Any) -> Iterator[Frame]:
             raise _Stop
 
     def work() -> None:
+        from nrc.app import finish
+
         try:
-            job.renderer.render(on_frame=on_frame)
+            result = job.renderer.render(on_frame=on_frame)
+            if job.out_dir is not None:  # the outputs of python -m nrc, once the last frame is done
+                finish(job, result)
         except _Stop:
             pass
         except BaseException as exc:  # noqa: BLE001 -- handed to the consumer, raised there

@@ -62,10 +62,16 @@ def test_nrc_run_renders_the_command_lines_image(tmp_path):
 
 
 def test_frames_yield_each_frame_and_the_last_is_the_run(tmp_path):
-    frames = list(nrc.frames([*TINY, *NRC]))
+    frames = list(nrc.frames([*TINY, *NRC], out_dir=tmp_path / "all"))
     assert [f.index for f in frames] == [0, 1]
     assert all(f.image.shape == (8, 12, 3) and "loss" in f.stats for f in frames)
     np.testing.assert_array_equal(frames[-1].output, nrc.run([*TINY, *NRC]).image)
+    # out_dir: the run's outputs once the last frame is done; a loop left early writes none
+    np.testing.assert_array_equal(read_exr(tmp_path / "all" / "image.exr")[0], frames[-1].output)
+    assert json.loads((tmp_path / "all" / "metrics.json").read_text())["frames_done"] == 2
+    for f in nrc.frames([*TINY, *NRC], out_dir=tmp_path / "left"):
+        break
+    assert not (tmp_path / "left" / "image.exr").exists()
 
 
 def test_leaving_the_frame_loop_stops_the_render():

@@ -547,15 +547,17 @@ def test_training_beside_the_next_trace_makes_the_same_updates(tmp_path):
     waiting steps first, on the same thread, so a run with checkpoints and one resumed from them equal the run
     without (float tolerance of the resume test: the same arithmetic)."""
     import shutil
+    import threading
 
-    base = ["frames=4", "renderer.training.carry_frames=0"]
+    base = ["frames=3", "renderer.training.carry_frames=0"]
     frames = [*base, "renderer.training.overlap=true"]
     off, off_threads = _overlapped(tmp_path, "off", base)  # the default: at the frame's end
     on, on_threads = _overlapped(tmp_path, "on", frames)
     h = on.metrics["history"]
     assert all(n == "MainThread" for n in off_threads) and not any(off.metrics["history"]["train_beside_trace"])
     assert on_threads and all(n.startswith("nrc-train") for n in on_threads)
-    assert sum(h["train_beside_trace"]) >= 2 and h["train_steps"] == off.metrics["history"]["train_steps"]
+    assert not any(t.name.startswith("nrc-train") for t in threading.enumerate())  # ended with the render
+    assert sum(h["train_beside_trace"]) == 2 and h["train_steps"] == off.metrics["history"]["train_steps"]
     assert h["train_steps"][-1] > 0 and on.metrics["cache_steps"] == off.metrics["cache_steps"]
     np.testing.assert_allclose(on.metrics["loss_per_frame"], off.metrics["loss_per_frame"], rtol=1e-3)
     np.testing.assert_allclose(on.image, off.image, rtol=1e-3, atol=1e-5)

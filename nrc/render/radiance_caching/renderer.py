@@ -439,45 +439,52 @@ class NRCRenderer:
         t_start = t_saved = time.perf_counter()
         done = start
         self.interrupted = None
-        with _StopOnSignal() as stop:
-            for frame in tqdm(range(start, self.frames), disable=not progress, desc="nrc", unit="frame", leave=False):
-                image, stats, losses = self.render_frame(frame)
-                step = self._log_trained(log, step)  # the previous frame's steps, taken beside this frame's trace
-                self._check_training(frame, stats)
-                if st.accumulate:
-                    accum += image
-                    n_accum += 1
-                    output = accum / n_accum
-                else:
-                    output = image
-                stats["flicker"] = self._flicker(output, previous)
-                previous = output.clone()
-                out_np = output.cpu().numpy()
-                if self.reference is not None:
-                    from nrc.metrics import mse, rel_mse
+        try:
+            with _StopOnSignal() as stop:
+                for frame in tqdm(range(start, self.frames), disable=not progress, desc="nrc", unit="frame",
+                                  leave=False):
+                    image, stats, losses = self.render_frame(frame)
+                    step = self._log_trained(log, step)  # the previous frame's steps, taken beside this trace
+                    self._check_training(frame, stats)
+                    if st.accumulate:
+                        accum += image
+                        n_accum += 1
+                        output = accum / n_accum
+                    else:
+                        output = image
+                    stats["flicker"] = self._flicker(output, previous)
+                    previous = output.clone()
+                    out_np = output.cpu().numpy()
+                    if self.reference is not None:
+                        from nrc.metrics import mse, rel_mse
 
-                    stats["rel_mse"] = rel_mse(out_np, self.reference)
-                    stats["mse"] = mse(out_np, self.reference)
-                log.steps(step, losses)
-                step += len(losses)
-                last = frame == self.frames - 1 or stop.signal is not None  # the final frame is always logged
-                log.frame(frame, stats, {"frame": image.cpu().numpy(), "output": out_np}, force_images=last)
-                if on_frame is not None:
-                    on_frame(frame, image.cpu().numpy(), out_np, stats)
-                done = frame + 1
-                stop.frame_done = True
-                if stop.signal is not None:
-                    self.interrupted = stop.signal
-                    break
-                due = (st.checkpoint_every and done % st.checkpoint_every == 0) or (
-                    st.checkpoint_seconds is not None and time.perf_counter() - t_saved >= st.checkpoint_seconds)
-                if self.out_dir is not None and due and done < self.frames:
-                    self.trainer.join()  # this frame's steps first: the checkpoint holds no job half done
-                    step = self._log_trained(log, step)
-                    self._checkpoint(self.out_dir / "checkpoint.pt", done, accum, n_accum, log)
-                    t_saved = time.perf_counter()
+                        stats["rel_mse"] = rel_mse(out_np, self.reference)
+                        stats["mse"] = mse(out_np, self.reference)
+                    log.steps(step, losses)
+                    step += len(losses)
+                    last = frame == self.frames - 1 or stop.signal is not None  # the final frame is always logged
+                    log.frame(frame, stats, {"frame": image.cpu().numpy(), "output": out_np}, force_images=last)
+                    if on_frame is not None:
+                        on_frame(frame, image.cpu().numpy(), out_np, stats)
+                    done = frame + 1
+                    stop.frame_done = True
+                    if stop.signal is not None:
+                        self.interrupted = stop.signal
+                        break
+                    waited = time.perf_counter() - t_saved
+                    by_time = st.checkpoint_seconds is not None and waited >= st.checkpoint_seconds
+                    due = (st.checkpoint_every and done % st.checkpoint_every == 0) or by_time
+                    if self.out_dir is not None and due and done < self.frames:
+                        self.trainer.join()  # this frame's steps first: the checkpoint holds no job half done
+                        step = self._log_trained(log, step)
+                        self._checkpoint(self.out_dir / "checkpoint.pt", done, accum, n_accum, log)
+                        t_saved = time.perf_counter()
+        except BaseException:  # a render left on an error or early (nrc.frames) leaves no training thread behind
+            self.trainer.close()
+            raise
         elapsed = time.perf_counter() - t_start
         self.trainer.join()  # the last frame's steps
+        self.trainer.close()
         self._log_trained(log, step)
         if self.out_dir is not None and done > start:
             self._checkpoint(self.out_dir / "checkpoint.pt", done, accum, n_accum, log)

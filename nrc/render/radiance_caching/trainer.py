@@ -55,7 +55,7 @@ class Trainer:
     Per frame: :meth:`start` (the trace's ``on_tail``), :meth:`join` after the trace, then :meth:`submit` the frame's
     own job. What each job did waits in :attr:`done` (``{frame: (losses, seconds, beside)}``, ``beside``: it started
     while a trace was still running) for :meth:`take`. The second thread is made on first use and lives as long as
-    the trainer."""
+    the trainer, or until :meth:`close`."""
 
     def __init__(self, cache: Any, ring: RingBuffer, V: int, device: torch.device) -> None:
         self.cache, self.ring, self.V, self.device = cache, ring, V, device
@@ -92,6 +92,16 @@ class Trainer:
             self.pending = job
         else:
             self.done[job.frame] = (*self.run(job), False)
+
+    def close(self) -> None:
+        """End the second thread (after the job it runs, whose outcome is dropped: a render that stops on an error
+        or early); a later :meth:`start` makes a new one."""
+        if self._future is not None:
+            self._future.exception()  # waits; an error of its own is the render's to report, not this one's
+            self.pending, self._future = None, None
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
 
     def take(self, frame: int | None = None) -> dict[int, tuple[list[float], float, bool]]:
         """Remove and return what the finished jobs did: of ``frame`` only, or all."""
