@@ -522,8 +522,9 @@ def _overlapped(tmp_path, name, overrides, on_frame=None):
     names of the threads its training steps ran on."""
     import threading
 
-    cfg = compose(["renderer=nrc", *TRAIN, "renderer.training.unbiased_fraction=0.5", "renderer.backend=eager",
-                   *overrides])
+    cfg = compose(["renderer=nrc", *TRAIN, "scene.camera.width=16", "scene.camera.height=8",
+                   "renderer.training.width=8", "renderer.training.height=8", "renderer.training.unbiased_fraction=0.5",
+                   "renderer.backend=eager", *overrides])
     r = NRCRenderer(load_scene(cfg.scene), cfg)
     run_compiled_structure_eagerly(r.tracer.core)
     threads = []
