@@ -15,6 +15,10 @@ the weights trained on the records of frames ``< f``, since a trace reads neithe
 Only the thread count of the arithmetic differs, so the two modes agree within float tolerance, not bit for bit;
 each is deterministic for a fixed seed, and because an overlapped job always runs on the second thread, wherever it
 starts, a checkpoint (written after :meth:`Trainer.join`) resumes exactly.
+
+Off by default: on 2 cores the overlapped frame was no faster (the two threads, both Python loops of short ops, wait
+on each other for the interpreter lock; docs/benchmarks.md, "Training beside the tail; fused calls; the training
+budget").
 """
 
 from __future__ import annotations
