@@ -154,7 +154,7 @@ class NRCRenderer:
         self.settings = st = replace(st, training=tr)  # the auto choices resolved
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)
-        self.trainer = Trainer(self.cache, self.ring, tr.records_per_path, self.device)
+        self.trainer = Trainer(self.cache, self.ring, tr.records_per_path)
         self.transmittance = make_transmittance(cfg.get("transmittance"))
         self.tracer = NRCPathTracer(scene, self.transmittance, st)
         self.reuse = make_reuse(st.reuse, scene.g, scene.integrator.spp, scene.grid, scene.albedo)
@@ -217,7 +217,7 @@ class NRCRenderer:
         lights = self.frame_lights(frame)
         q = st.debias.probability
         trainer = self.trainer
-        trace = self.tracer.trace(ps, lights, rng, q, on_tail=trainer.start if trainer.pending is not None else None)
+        trace = self.tracer.trace(ps, lights, rng, q, on_tail=trainer.start)
         reuse_stats: dict[str, Any] = {}
         if self.reuse is not None:  # the render paths' first-vertex direct light, by reservoir reuse
             contribution, reuse_stats = self.reuse.frame(trace.reuse, camera, lights, self.transmittance,
@@ -264,10 +264,10 @@ class NRCRenderer:
         n_valid = int(valid.sum())
         job = TrainingJob(frame, records, valid, torch.full((len(valid),), frame, dtype=torch.long,
                                                             device=self.device),
-                          late, batches, suffix, rng.generator.get_state())
+                          late, batches, suffix, rng.generator)
         # trained now, or beside the next frame's trace (where it has the one-thread tail: trainer.py)
         trainer.submit(job, overlap=tr.overlap and self.device.type == "cpu" and trace.fused_tail)
-        losses, train_work, _ = trainer.take(frame).get(frame, ([], None, False))
+        losses, train_work, _ = trainer.done.pop(frame, ([], None, False))
         t3 = time.perf_counter()
 
         # time_train_s: what the frame waited for training (its records, its steps run here or the wait for the

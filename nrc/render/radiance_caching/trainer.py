@@ -1,7 +1,7 @@
 """The cache's training on a frame's records: at the frame's end, or beside the next frame's trace.
 
 A frame's training (:class:`TrainingJob`) is the frame's records (its own training paths' and those of earlier frames
-that ended in it), the batches the batch filter picked and the frame generator's state. :class:`Trainer` runs it:
+that ended in it), the batches the batch filter picked and the frame's generator. :class:`Trainer` runs it:
 
 * at once, after the frame's inference, on every thread: ``renderer.training.overlap=false``, a GPU, or a trace
   without the one-thread tail (the eager backend's structure);
@@ -39,8 +39,8 @@ class TrainingJob:
     """One frame's training: ``records`` ``V`` per training path in training-image order (``valid``: the usable ones,
     ``started``: the frame each record's path started in), ``late`` ``(records, valid, started)`` of earlier frames'
     paths that ended in ``frame`` (or ``None``), the ``batches`` (training-path ranges ``[a, b)``), the debiased
-    suffixes' records (``suffix``, or ``None``) and ``gen_state``, the frame generator's state when the job was made
-    (the ring buffer's draws for invalid records come from it)."""
+    suffixes' records (``suffix``, or ``None``) and ``gen``, the frame's generator (the ring buffer's draws for invalid
+    records come from it; nothing else draws from it once the job is made: every frame has its own)."""
 
     frame: int
     records: TrainingRecords
@@ -49,7 +49,7 @@ class TrainingJob:
     late: tuple[TrainingRecords, Tensor, Tensor] | None
     batches: list[tuple[int, int]]
     suffix: tuple[TrainingRecords, Tensor] | None
-    gen_state: Tensor
+    gen: torch.Generator
 
 
 class Trainer:
@@ -58,11 +58,11 @@ class Trainer:
 
     Per frame: :meth:`start` (the trace's ``on_tail``), :meth:`join` after the trace, then :meth:`submit` the frame's
     own job. What each job did waits in :attr:`done` (``{frame: (losses, seconds, beside)}``, ``beside``: it started
-    while a trace was still running) for :meth:`take`. The second thread is made on first use and lives as long as
+    while a trace was still running) for :meth:`take` (or its own frame's entry, popped). The second thread is made on first use and lives as long as
     the trainer, or until :meth:`close`."""
 
-    def __init__(self, cache: Any, ring: RingBuffer, V: int, device: torch.device) -> None:
-        self.cache, self.ring, self.V, self.device = cache, ring, V, device
+    def __init__(self, cache: Any, ring: RingBuffer, V: int) -> None:
+        self.cache, self.ring, self.V = cache, ring, V
         self.pending: TrainingJob | None = None
         self.done: dict[int, tuple[list[float], float, bool]] = {}
         self._future: Future | None = None
@@ -107,21 +107,17 @@ class Trainer:
             self._pool.shutdown()
             self._pool = None
 
-    def take(self, frame: int | None = None) -> dict[int, tuple[list[float], float, bool]]:
-        """Remove and return what the finished jobs did: of ``frame`` only, or all."""
-        if frame is None:
-            done, self.done = self.done, {}
-            return done
-        return {frame: self.done.pop(frame)} if frame in self.done else {}
+    def take(self) -> dict[int, tuple[list[float], float, bool]]:
+        """Remove and return what the finished jobs did."""
+        done, self.done = self.done, {}
+        return done
 
     def run(self, job: TrainingJob) -> tuple[list[float], float]:
         """Train ``job`` and return its losses and seconds: late records into its batches' holes, one Adam step per
         batch (invalid records drawn from the ring buffer), then its valid records (and suffixes) into the ring
         buffer."""
         t0 = time.perf_counter()
-        V = self.V
-        gen = torch.Generator(device=self.device)
-        gen.set_state(job.gen_state)
+        V, gen = self.V, job.gen
         if job.late is not None:
             self._place_late(job)
         losses = []
