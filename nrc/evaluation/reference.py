@@ -29,6 +29,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 import numpy as np
@@ -195,6 +196,18 @@ def _render_chunk(scene: Scene, cfg: DictConfig, chunk_spp: int, seed: int) -> n
     return PathTracer(chunk_scene, cfg).render().image.astype(np.float64)
 
 
+def chunk_sums(scene: Scene, cfg: DictConfig, chunk_spp: int, seeds: Iterable[int], total: np.ndarray | None,
+               total_sq: np.ndarray | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Render the chunks of ``seeds`` in order, yielding the running sum and sum of squares (float64, ``(H, W,
+    3)``) after each; ``total`` / ``total_sq`` are the sums of the chunks already done (None: none). Whoever
+    consumes it saves its progress between chunks (a reference's checkpoint, a part's file)."""
+    for seed in seeds:
+        image = _render_chunk(scene, cfg, chunk_spp, seed)
+        total = image if total is None else total + image
+        total_sq = image**2 if total_sq is None else total_sq + image**2
+        yield total, total_sq
+
+
 def _chunk_count(chunk_spp: int, total_spp: int) -> int:
     if chunk_spp < 1 or total_spp < 1 or total_spp % chunk_spp:
         raise ConfigError(f"total spp ({total_spp}) must be a positive multiple of chunk spp ({chunk_spp})")
@@ -236,10 +249,8 @@ def render_reference(
     end = n_chunks if stop_after is None else min(n_chunks, done + stop_after)
     # tqdm shows elapsed time and an ETA from the chunk rate
     with tqdm(total=n_chunks, initial=done, unit="chunk", desc=f"reference {out.name}", disable=not progress) as bar:
-        for i in range(done, end):
-            image = _render_chunk(scene, cfg, chunk_spp, seed + i)
-            total = image if total is None else total + image
-            total_sq = image**2 if total_sq is None else total_sq + image**2
+        sums = chunk_sums(scene, cfg, chunk_spp, range(seed + done, seed + end), total, total_sq)
+        for i, (total, total_sq) in enumerate(sums, start=done):
             _save_checkpoint(ckpt, total, total_sq, i + 1, chash, chunk_spp, seed)
             bar.update(1)
     if end < n_chunks:

@@ -34,7 +34,7 @@ from tqdm import tqdm
 from nrc.config import resolve_device
 from nrc.errors import ConfigError, NRCError
 from nrc.io.atomic import write_atomically
-from nrc.evaluation.reference import (REF_SEED, REF_SEEDS_PER_BASE, _chunk_count, _render_chunk, config_hash,
+from nrc.evaluation.reference import (REF_SEED, REF_SEEDS_PER_BASE, _chunk_count, chunk_sums, config_hash,
                                       medium_alpha, reference_base_seed, reference_noise_floor, scene_hash,
                                       write_reference_exr)
 from nrc.scene import load_scene
@@ -179,10 +179,8 @@ def render_part(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int
         return part
     with tqdm(total=len(chunks), initial=part.done, unit="chunk", desc=f"reference part {path.name}",
               disable=not progress) as bar:
-        for i in todo:
-            image = _render_chunk(scene, cfg, chunk_spp, seed + i)
-            part.total = image if part.done == 0 else part.total + image
-            part.total_sq = image**2 if part.done == 0 else part.total_sq + image**2
+        done = (part.total, part.total_sq) if part.done else (None, None)
+        for part.total, part.total_sq in chunk_sums(scene, cfg, chunk_spp, [seed + i for i in todo], *done):
             part.done += 1
             part.write()
             bar.update(1)
