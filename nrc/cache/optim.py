@@ -3,6 +3,11 @@
 Conventions (tiny-cuda-nn / Müller 2021): Adam with betas ``(0.9, 0.99)``; hash tables use
 ``eps = 1e-15`` and their own learning rate (1e-2 by default); the L2 penalty (Adam ``weight_decay``,
 i.e. ``wd * w`` added to the gradient) applies to the MLP weights only.
+
+One difference from tiny-cuda-nn: its Adam skips hash-table entries whose gradient is exactly 0 (no moment decay,
+no update, a step count per entry); ``torch.optim.Adam`` here updates every entry each step, so the momentum of an
+entry no batch touched keeps moving it. The defaults (hash-table lr 3e-4, the EMA) were measured with this dense
+update; a lazy one would need them measured again (docs/benchmarks.md, "A cheaper training step").
 """
 
 from __future__ import annotations
