@@ -28,8 +28,8 @@ import dataclasses
 import hashlib
 import json
 import os
-from pathlib import Path
 from collections.abc import Iterable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np

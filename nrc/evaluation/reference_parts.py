@@ -179,8 +179,9 @@ def render_part(cfg: DictConfig, out: str | Path, chunk_spp: int, total_spp: int
         return part
     with tqdm(total=len(chunks), initial=part.done, unit="chunk", desc=f"reference part {path.name}",
               disable=not progress) as bar:
-        done = (part.total, part.total_sq) if part.done else (None, None)
-        for part.total, part.total_sq in chunk_sums(scene, cfg, chunk_spp, [seed + i for i in todo], *done):
+        so_far = (part.total, part.total_sq) if part.done else (None, None)  # a new part's arrays are empty
+        for total, total_sq in chunk_sums(scene, cfg, chunk_spp, [seed + i for i in todo], *so_far):
+            part.total, part.total_sq = total, total_sq
             part.done += 1
             part.write()
             bar.update(1)

@@ -58,8 +58,8 @@ class Trainer:
 
     Per frame: :meth:`start` (the trace's ``on_tail``), :meth:`join` after the trace, then :meth:`submit` the frame's
     own job. What each job did waits in :attr:`done` (``{frame: (losses, seconds, beside)}``, ``beside``: it started
-    while a trace was still running) for :meth:`take` (or its own frame's entry, popped). The second thread is made on first use and lives as long as
-    the trainer, or until :meth:`close`."""
+    while a trace was still running) for :meth:`take` (or its own frame's entry, popped). The second thread is made
+    on first use and lives as long as the trainer, or until :meth:`close`."""
 
     def __init__(self, cache: Any, ring: RingBuffer, V: int) -> None:
         self.cache, self.ring, self.V = cache, ring, V
