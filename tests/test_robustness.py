@@ -283,10 +283,27 @@ def _watch_cases(before: object) -> None:
                     if first_only and len(caught) > 1:
                         raise
 
-    with pytest.raises(KeyboardInterrupt):  # raised plainly
-        with _InterruptWatch() as watch:
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(5)
+    import logging
+
+    records: list[str] = []
+    torch_log = logging.getLogger("torch._subclasses.fake_tensor")
+    sink = logging.Handler()
+    sink.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]
+    torch_log.addHandler(sink)
+    try:
+        with pytest.raises(KeyboardInterrupt):  # raised plainly; what torch logs after the hit is not printed
+            with _InterruptWatch() as watch:
+                torch_log.error("before")
+                try:
+                    os.kill(os.getpid(), signal.SIGINT)
+                    time.sleep(5)
+                except KeyboardInterrupt:
+                    torch_log.exception("fake tensor raised TypeError")
+                    raise
+        torch_log.error("after")
+    finally:
+        torch_log.removeHandler(sink)
+    assert records == ["before", "after"]
     assert watch.hit and signal.getsignal(signal.SIGINT) is before
     with pytest.raises(KeyboardInterrupt):  # turned into another error (as torch's tracing did once)
         with _InterruptWatch():

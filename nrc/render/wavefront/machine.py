@@ -164,14 +164,16 @@ class _InterruptWatch:
     minutes. So after a hit the interrupt is raised again every ``REPEAT_S`` until the block is left, and leaving
     the block after a hit, normally or by any exception, raises ``KeyboardInterrupt``. An interrupt handled while
     the block is being left (inside :meth:`__exit__`, at any depth) only notes the hit: ``__exit__`` raises it, and
-    a repeat can never land after the block.
+    a repeat can never land after the block. After a hit, logging is off until the block is left: torch logs the
+    interrupt with its traceback where its dispatch catches it (``fake tensor raised TypeError``), and a stop prints
+    one line, not that.
     """
 
     REPEAT_S = 1.0
     hit = False
 
     def __enter__(self) -> _InterruptWatch:
-        self._prev = None
+        self._prev, self._logging = None, None
         self._left, self._lock = threading.Event(), threading.Lock()
         if threading.current_thread() is threading.main_thread():
             prev = signal.getsignal(signal.SIGINT)
@@ -179,6 +181,8 @@ class _InterruptWatch:
                 def handler(signum: int, frame: Any) -> None:
                     leaving = self._leaving(frame)
                     if not self.hit and not leaving:
+                        self._logging = logging.root.manager.disable
+                        logging.disable(logging.CRITICAL)
                         threading.Thread(target=self._repeat, daemon=True).start()
                     self.hit = True
                     if not leaving:
@@ -209,6 +213,8 @@ class _InterruptWatch:
             self._left.set()
         if self._prev is not None:
             signal.signal(signal.SIGINT, self._prev)
+        if self._logging is not None:
+            logging.disable(self._logging)
         if self.hit and not isinstance(exc, KeyboardInterrupt):
             raise KeyboardInterrupt from exc
 
