@@ -456,3 +456,69 @@ def test_auto_loads_cached_packages_for_any_render(tmp_path, monkeypatch):
         assert wm.aot_packages(pt.core.step, pt.core.steps_per_call, pt.device) != paths
     finally:
         torch.set_num_threads(threads)
+
+
+WRAPPER = """\
+namespace torch::aot_inductor {
+void AOTInductorModel::run_impl(
+) {
+    AOTI_TORCH_ERROR_CODE_CHECK(aoti_torch_empty_strided(1, int_array_5, int_array_1, cached_torch_dtype_float32, cached_torch_device_type_cpu, this->device_idx_, &buf113_handle));
+    AOTI_TORCH_ERROR_CODE_CHECK(aoti_torch_empty_strided(1, int_array_2, int_array_1, cached_torch_dtype_int64, cached_torch_device_type_cpu, this->device_idx_, &buf130_handle));
+    auto buf60 = wrap_with_raii_handle_if_needed(reinterpret_tensor_wrapper(buf113, 1, int_array_3, int_array_4, 6L*s21));  // alias
+    auto buf116 = wrap_with_raii_handle_if_needed(reinterpret_tensor_wrapper(buf130, 1, int_array_3, int_array_4, 2L*s21));  // alias
+    auto buf61 = wrap_with_raii_handle_if_needed(reinterpret_tensor_wrapper(buf113, 1, int_array_3, int_array_4, 7L*s21));  // alias
+    auto buf62 = wrap_with_raii_handle_if_needed(reinterpret_tensor_wrapper(buf113, 1, int_array_3, int_array_4, s21));  // alias
+    auto buf70 = wrap_with_raii_handle_if_needed(reinterpret_tensor_wrapper(buf77, 1, int_array_3, int_array_4, s21));  // alias
+    auto buf77 = std::move(buf17);  // reuse
+    cpp_fused_0((float*)(buf60.data_ptr()), (int64_t*)(buf116.data_ptr()), (float*)(buf61.data_ptr()), (float*)(buf62.data_ptr()), (float*)(buf70.data_ptr()), s21);
+    output_handles[0] = buf61.release();
+    buf113.reset();
+    cpp_fused_1((float*)(buf62.data_ptr()), s21);
+} // AOTInductorModel::run_impl
+}
+"""
+
+
+def test_row_views_become_pointers_only_where_that_is_the_same_thing():
+    """The AOT wrapper's per-row tensor views become pointers into their base (offset x element size) when they
+    are used only as ``data_ptr()``; a view used as a tensor, one of a base of unknown type, and one used after its
+    base is freed stay as Inductor wrote them."""
+    from nrc.render.wavefront.row_views import raw_row_views
+
+    code, n = raw_row_views(WRAPPER)
+    assert n == 2
+    assert "NrcRowPointer buf60{static_cast<char*>(buf113.data_ptr()) + (6L*s21) * 4};" in code
+    assert "NrcRowPointer buf116{static_cast<char*>(buf130.data_ptr()) + (2L*s21) * 8};" in code
+    for kept in ("buf61", "buf62", "buf70"):  # released as an output; used after buf113.reset(); base a reuse
+        assert f"auto {kept} = wrap_with_raii_handle_if_needed(" in code
+    assert code.count("struct NrcRowPointer") == 1 and code.index("struct NrcRowPointer") < code.index("run_impl")
+    assert raw_row_views(WRAPPER.replace("run_impl", "other")) == (WRAPPER.replace("run_impl", "other"), 0)
+
+
+def test_a_package_with_row_pointers_computes_what_eager_code_does(tmp_path):
+    """A step-like function that returns a stack of rows, built ahead of time with the rows as pointers, gives the
+    eager function's output (integers bitwise, floats within rounding: compiled arithmetic), at several row
+    lengths (the slot count is dynamic)."""
+    from torch._inductor import aoti_compile_and_package, aoti_load_package
+    from torch.export import Dim
+
+    from nrc.render.wavefront.row_views import plain_row_views
+
+    class Rows(torch.nn.Module):
+        def forward(self, F, I):
+            a, b, c = F.unbind(0)
+            k = I[0]
+            return torch.stack([a * b + 1, torch.where(k > 2, c, -c), b.sqrt(), a + c]), torch.stack([k + 1, k * 3])
+
+    n = Dim("slots", min=2)
+    F, I = torch.rand(3, 8), torch.arange(8)[None].clone()
+    program = torch.export.export(Rows(), (F, I), dynamic_shapes=({1: n}, {1: n}), strict=False)
+    report: dict[str, int] = {}
+    with plain_row_views(report):
+        path = aoti_compile_and_package(program, package_path=str(tmp_path / "rows.pt2"))
+    assert report["row_views"] > 0
+    step = aoti_load_package(path)
+    for slots in (2, 5, 37):
+        F, I = torch.rand(3, slots), torch.randint(0, 5, (1, slots))
+        for got, want in zip(step(F, I), Rows()(F, I)):
+            torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)

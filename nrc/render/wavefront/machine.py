@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from nrc.render.compile_cache import default_inductor_cache, inductor_cache_dir, package_sources
+from nrc.render.wavefront.row_views import plain_row_views
 from nrc.render.wavefront.step import Transport
 from nrc.transport.rng import uniforms as counter_uniforms
 
@@ -236,7 +237,8 @@ def _build_package(fn: Any, args: tuple[Tensor, ...], options: dict[str, Any], p
         warnings.simplefilter("ignore", FutureWarning)
         program = torch.export.export(Step(), args, dynamic_shapes=({1: n}, {1: n}, None, {0: nd}, {0: nm}),
                                       strict=False)
-        aoti_compile_and_package(program, package_path=str(tmp), inductor_configs=dict(options))
+        with plain_row_views():  # the state rows as pointers, not per-call tensor views (row_views.py)
+            aoti_compile_and_package(program, package_path=str(tmp), inductor_configs=dict(options))
     os.replace(tmp, path)
 
 
