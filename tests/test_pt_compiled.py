@@ -126,6 +126,21 @@ def test_hash_rng_is_uniform_deterministic_and_decorrelated():
     assert int(hash32(torch.tensor([0, 1, 2**32 - 1])).max()) < 2**32
 
 
+def test_hash_rng_draws_the_same_numbers_at_every_batch_size_and_compiled():
+    """Eager draws of few numbers hash all lanes at once (``EAGER_LANES_MAX``), larger ones a lane at a time (the
+    form compiled code keeps): a path's numbers are bitwise the same at every batch size. (Compiled against eager:
+    the compiled backend's parity tests, long set.)"""
+    from nrc.transport.rng import EAGER_LANES_MAX
+
+    keys = path_key(3, torch.arange(EAGER_LANES_MAX))
+    ctr = torch.arange(EAGER_LANES_MAX) % 7
+    big = uniforms(keys, ctr, 6)  # 6 x 2^14 numbers: one lane at a time
+    for n in (2, 100, EAGER_LANES_MAX // 6):  # all lanes at once
+        for got, want in zip(uniforms(keys[:n], ctr[:n], 6), big):
+            assert torch.equal(got, want[:n])
+    assert torch.equal(uniforms(keys[:50], ctr[:50], 1)[0], big[0][:50])
+
+
 # ---------------------------------------------------------------------------------------------- render level
 SKY = ["scene=sky", "scene.camera.width=8", "scene.camera.height=6", "scene.camera.position=[0,0,120]",
        "scene.camera.look_at=[0,0,0]", "scene.camera.fov_y=50"]

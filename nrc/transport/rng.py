@@ -27,6 +27,10 @@ _M1 = 0x21F0AAAD
 _M2 = 0x735A2D97
 _GOLDEN = 0x9E3779B9  # 2^32 / phi: decorrelates lanes and seeds
 _INV_2_24 = 1.0 / (1 << 24)
+# Eager draws of up to this many numbers hash all their lanes at once: 1.1-5.6x faster at 128-1,024 paths (2-18
+# lanes, one thread), slower from ~2^15 numbers on (0.4-0.9x at 4,096 x 18 and 16,384 x 4), where the per-lane form
+# stays.
+EAGER_LANES_MAX = 1 << 14
 
 
 def hash32(x: Tensor) -> Tensor:
@@ -54,6 +58,11 @@ def uniforms(key: Tensor, counter: Tensor, lanes: int) -> list[Tensor]:
     streams of different keys never shift into each other (unlike ``hash(key + counter)``).
     """
     s = hash32(key ^ hash32(counter))
+    if lanes > 1 and s.numel() * lanes <= EAGER_LANES_MAX and not torch.compiler.is_compiling():
+        # Eager code at a few paths pays per op, not per number: all lanes in one hash over (lanes, N), the same
+        # integers. Compiled code (and export) keeps one expression a lane, which a compiler fuses.
+        salt = (torch.arange(1, lanes + 1, dtype=torch.int64, device=s.device) * _GOLDEN) & MASK32
+        return list(((hash32(s[None] ^ salt[:, None]) >> 8).to(torch.float32) * _INV_2_24).unbind(0))
     return [(hash32(s ^ (((j + 1) * _GOLDEN) & MASK32)) >> 8).to(torch.float32) * _INV_2_24 for j in range(lanes)]
 
 
