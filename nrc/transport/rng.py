@@ -58,9 +58,10 @@ def uniforms(key: Tensor, counter: Tensor, lanes: int) -> list[Tensor]:
     streams of different keys never shift into each other (unlike ``hash(key + counter)``).
     """
     s = hash32(key ^ hash32(counter))
-    if lanes > 1 and s.numel() * lanes <= EAGER_LANES_MAX and not torch.compiler.is_compiling():
+    if lanes > 1 and not torch.compiler.is_compiling() and s.numel() * lanes <= EAGER_LANES_MAX:
         # Eager code at a few paths pays per op, not per number: all lanes in one hash over (lanes, N), the same
-        # integers. Compiled code (and export) keeps one expression a lane, which a compiler fuses.
+        # integers. Compiled code (and export) keeps one expression a lane, which a compiler fuses; it never reads
+        # the batch size here (a symbolic size compared with a constant would specialise the graph).
         salt = (torch.arange(1, lanes + 1, dtype=torch.int64, device=s.device) * _GOLDEN) & MASK32
         return list(((hash32(s[None] ^ salt[:, None]) >> 8).to(torch.float32) * _INV_2_24).unbind(0))
     return [(hash32(s ^ (((j + 1) * _GOLDEN) & MASK32)) >> 8).to(torch.float32) * _INV_2_24 for j in range(lanes)]
