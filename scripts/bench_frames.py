@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import statistics
 import time
 from pathlib import Path
@@ -32,6 +33,18 @@ from nrc.scene import load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"  # ../shared/data/ from the repo root
+
+
+class _Fallbacks(logging.Handler):
+    """Collects the machine's notes that a step could not be built ahead of time (it then runs torch.compile)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if "ahead-of-time compile of the step failed" in record.getMessage():
+            self.lines.append(record.getMessage())
 
 
 def spread(xs: list[float]) -> dict[str, float]:
@@ -61,6 +74,11 @@ def main() -> None:
     scene = [f"scene={args.preset}", f"scene.volume.path={args.vdb}", f"scene.camera.width={args.width}",
              f"scene.camera.height={args.height}", "scene.integrator.spp=1", f"device={args.device}",
              f"renderer.backend={args.backend}", *args.overrides]
+
+    fallbacks = _Fallbacks()  # a step that could not be packaged runs JIT code, slower: say so beside the figures
+    machine_log = logging.getLogger("nrc.render.wavefront.machine")
+    machine_log.addHandler(fallbacks)
+    machine_log.setLevel(logging.INFO)
 
     t0 = time.perf_counter()
     cfg = compose(["renderer=nrc", *scene, f"frames={args.frames}", "renderer.log.tensorboard=false", *args.nrc])
@@ -104,7 +122,7 @@ def main() -> None:
     }
     out = {"scene": args.preset, "size": [args.width, args.height], "device": args.device, "threads": args.threads,
            "nrc": out_nrc, "pt": out_pt, "ratio_frame": out_nrc["frame_s"]["median"] / out_pt["frame_s"]["median"],
-           "ratio_per_event": out_nrc["us_per_event"] / out_pt["us_per_event"]}
+           "ratio_per_event": out_nrc["us_per_event"] / out_pt["us_per_event"], "step_fallbacks": fallbacks.lines}
     for name, o in (("nrc", out_nrc), ("pt 1 spp", out_pt)):
         f = o["frame_s"]
         extra = (f", trace {o['trace_s']:.3f} / infer {o['infer_s']:.3f} / train {o['train_s']:.3f} s (steps "
@@ -114,6 +132,8 @@ def main() -> None:
               f"calls, {o['ms_per_call']:.3f} ms a call; {o['events']:.0f} events, {o['us_per_event']:.2f} us an event; "
               f"start-up {o['startup_s']:.1f} s, process {o['process_s']:.1f} s ({o['backend']})")
     print(f"NRC frame / pt 1-spp frame {out['ratio_frame']:.2f}x; per event {out['ratio_per_event']:.2f}x")
+    for line in fallbacks.lines:
+        print(f"WARNING: not the packaged step, so not the figures of a packaged one: {line}")
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))
 
