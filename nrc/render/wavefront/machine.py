@@ -318,8 +318,8 @@ class Machine:
                 with _InterruptWatch():  # Ctrl-C inside torch's tracing, however it surfaces: a stop
                     _build_package(fn, args, options, path)
             except Exception as exc:  # noqa: BLE001 -- an op export cannot take: the JIT compiles it
-                log.info("ahead-of-time compile of the step failed (%s: %s); using torch.compile", type(exc).__name__,
-                         failure_line(exc))
+                log.warning("ahead-of-time compile of the step failed (%s: %s); using torch.compile's JIT code "
+                            "(slower calls than the packaged step's)", type(exc).__name__, failure_line(exc))
                 self.packages = None
                 self._jit()
                 return
