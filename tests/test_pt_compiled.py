@@ -126,7 +126,7 @@ def test_hash_rng_is_uniform_deterministic_and_decorrelated():
     assert int(hash32(torch.tensor([0, 1, 2**32 - 1])).max()) < 2**32
 
 
-def test_hash_rng_draws_the_same_numbers_at_every_batch_size_and_compiled():
+def test_hash_rng_draws_the_same_numbers_at_every_batch_size():
     """Eager draws of few numbers hash all lanes at once (``EAGER_LANES_MAX``), larger ones a lane at a time (the
     form compiled code keeps): a path's numbers are bitwise the same at every batch size. (Compiled against eager:
     the compiled backend's parity tests, long set.)"""

@@ -21,17 +21,23 @@ import re
 from collections.abc import Iterator
 from typing import Any
 
+import torch
+
 _ALIAS = re.compile(r"^(?P<indent>\s*)auto (?P<name>buf\d+) = wrap_with_raii_handle_if_needed\("
                     r"reinterpret_tensor_wrapper\((?P<base>buf\d+), \d+, \w+, \w+, (?P<offset>[^;]+?)\)\);"
                     r"\s*// alias$")
 _ALLOC = re.compile(r"aoti_torch_empty_strided\(.*cached_torch_dtype_(?P<dtype>\w+), .*&(?P<name>buf\d+)_handle\)")
-_ITEMSIZE = {"float32": 4, "float64": 8, "int64": 8, "int32": 4, "int16": 2, "int8": 1, "uint8": 1, "bool": 1,
-             "float16": 2, "bfloat16": 2}
 _POINTER = ("struct NrcRowPointer {  // a state row inside a buffer: all a kernel call takes from a view (nrc)\n"
             "    void* ptr;\n"
             "    void* data_ptr() const { return ptr; }\n"
             "};\n\n")
 _RUN, _END = "void AOTInductorModel::run_impl(", "} // AOTInductorModel::run_impl"
+
+
+def _itemsize(dtype: str | None) -> int | None:
+    """Bytes an element of ``cached_torch_dtype_<dtype>`` (``None``: not a torch dtype)."""
+    kind = getattr(torch, dtype, None) if dtype else None
+    return kind.itemsize if isinstance(kind, torch.dtype) else None
 
 
 def raw_row_views(code: str) -> tuple[str, int]:
@@ -44,7 +50,8 @@ def raw_row_views(code: str) -> tuple[str, int]:
     changed = 0
     for i, line in enumerate(lines):
         m = _ALIAS.match(line)
-        if m is None or dtypes.get(m["base"]) not in _ITEMSIZE:
+        size = _itemsize(dtypes.get(m["base"])) if m else None
+        if size is None:
             continue
         name, base = m["name"], m["base"]
         uses = [j for j, other in enumerate(lines) if j != i and re.search(rf"\b{name}\b", other)]
@@ -55,7 +62,7 @@ def raw_row_views(code: str) -> tuple[str, int]:
         if any(re.search(rf"std::move\({base}\)|\b{base}\.(reset|release)\(\)", lines[j]) for j in range(last + 1)):
             continue
         lines[i] = (f"{m['indent']}NrcRowPointer {name}{{static_cast<char*>({base}.data_ptr()) + "
-                    f"({m['offset']}) * {_ITEMSIZE[dtypes[base]]}}};  // row of {base}")
+                    f"({m['offset']}) * {size}}};  // row of {base}")
         changed += 1
     if not changed:
         return code, 0
