@@ -334,17 +334,63 @@ def test_a_training_path_that_spans_frames_leaves_the_records_it_leaves_within_i
     assert r.ring.started().tolist() == [0, 0]
 
 
-def test_carried_paths_are_dropped_after_carry_frames(tmp_path):
-    """A training path still going ``carry_frames`` frames after its own is dropped when its pool block is reused:
-    its records never reach the ring buffer (unbiased training paths of the hand scene run to ``max_scatter`` 40)."""
-    cfg = compose([*hand_config(tmp_path, "renderer.training.unbiased_fraction=1.0", "scene.integrator.max_scatter=40"),
-                   "renderer.training.carry_frames=1"])
+def test_a_carried_path_in_its_last_frame_ends_in_the_cache_at_its_next_vertex(tmp_path):
+    """``carry_frames=1``: a training path still going at its frame's end goes on in the next frame only, where it
+    ends into the cache at its next vertex ("aged"), as a path capped there (``unbiased_max_vertices``) does in a
+    frame that waits for it: the same records and targets reach the ring buffer (frozen cache), nothing is dropped
+    (unbiased training paths of the hand scene would run to ``max_scatter`` 40)."""
+    long = ["renderer.training.unbiased_fraction=1.0", "scene.integrator.max_scatter=40"]
+    cfg = compose([*hand_config(tmp_path, *long), "renderer.training.carry_frames=1"])
     r = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
     r.frame_rng = lambda frame: ConstantRandom(U)
-    stats = [r.render_frame(f)[1] for f in range(4)]
-    assert [s["training_paths_in_flight"] for s in stats] == [1, 2, 2, 2]
-    assert [s["training_paths_dropped"] for s in stats] == [0, 0, 1, 1]
-    assert all(s["training_paths_late"] == 0 for s in stats) and len(r.ring) == 0
+    stats = [r.render_frame(0)[1]]
+    ly = r.tracer.core.eager_step.layout
+    n_cut = int(r.tracer.pool.carry[1][ly.i("n"), 0]) + 1  # the vertex it will end at
+    stats += [r.render_frame(f)[1] for f in range(1, 4)]
+    assert [s["training_paths_in_flight"] for s in stats] == [1, 1, 1, 1]
+    assert [s["training_paths_aged"] for s in stats] == [0, 1, 1, 1]
+    assert [s["training_paths_late"] for s in stats] == [0, 1, 1, 1]
+    assert all(s["training_paths_dropped"] == 0 for s in stats)
+    assert 1 < n_cut < 40 and r.ring.started().tolist()[:2] == [0, 0]
+
+    capped = compose(hand_config(tmp_path, *long, f"renderer.training.unbiased_max_vertices={n_cut}"))
+    w = NRCRenderer(load_scene(capped.scene), capped, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
+    w.frame_rng = lambda frame: ConstantRandom(U)
+    w.render_frame(0)
+    want, got = w.ring.stored(), r.ring.stored()
+    n = len(want.positions)
+    assert n == 2  # records_per_path 3: the hand path's first vertices
+    torch.testing.assert_close(got.positions[:n], want.positions)
+    torch.testing.assert_close(got.directions[:n], want.directions)
+    torch.testing.assert_close(got.targets[:n], want.targets)
+
+
+def test_the_pool_ages_carried_paths_in_their_last_frame_and_drops_them_after_it():
+    """``TrainingPool.start`` with ``k`` = 2 (3 blocks): at frame 5 the carried paths of frame 3 (block 0, the next
+    frame's) end into the cache at their next vertex (``n_term = n + 1``, unless one is decided sooner), those of
+    frame 2 (block 2, this frame's) are dropped, those of frame 4 go on untouched."""
+    from nrc.render.radiance_caching.paths import TrainingPool
+
+    class Layout:
+        rows = {"rec_base": 0, "n": 1, "n_term": 2}
+
+        def i(self, name):
+            return self.rows[name]
+
+    V, n_train = 2, 4
+    pool = TrainingPool(n_train, V, 3, torch.device("cpu"))
+    # pool paths 1 and 2 (block 0: frame 3), 5 (block 1: frame 4), 9 and 10 (block 2: frame 2)
+    tids = torch.tensor([1, 2, 5, 9, 10])
+    I = torch.stack([tids * V, torch.tensor([7, 3, 4, 9, 1]), torch.tensor([0, 2, 0, 0, 0])])
+    F = torch.arange(5.0)[None].repeat(2, 1)
+    pool.carry = (F, I)
+    dropped, aged = pool.start(5, Layout(), [torch.zeros(3 * n_train * V, 3)])
+    assert (dropped, aged) == (2, 2)
+    Fc, Ic = pool.carry
+    assert Fc[0].tolist() == [0.0, 1.0, 2.0]  # the two paths of frame 2 are gone
+    assert Ic[1].tolist() == [7, 3, 4]
+    assert Ic[2].tolist() == [8, 2, 0]  # aged at its next vertex; already ending sooner; untouched
+    assert int(pool.started[pool.block(5)]) == 5
 
 
 def test_with_a_frozen_cache_the_image_does_not_wait_for_training_paths():

@@ -105,9 +105,10 @@ class TrainingPool:
     path ``tid = block * n_train + k`` (its cache query's slot ``n_render + tid``), and owns the accumulator rows
     and records ``[tid V, (tid + 1) V)``. A frame stops when its render paths are done; its training paths that
     are still going are carried (:attr:`carry`, their packed slots) into the next frame's wavefront and end there
-    or later, with their rows intact. A block is reused ``k + 1`` frames later: paths of its earlier frame that are
-    still going then are dropped (their records never count). ``k = 0``: one block, and a frame waits for its
-    training paths.
+    or later, with their rows intact. In the last frame a path may go on in (``k`` frames after its own) it ends
+    into the cache at its next vertex (:meth:`start`, "aged"); a block is reused ``k + 1`` frames later, and a path
+    of its earlier frame still going then (one that met no vertex in that frame) is dropped: its records never
+    count. ``k = 0``: one block, and a frame waits for its training paths.
 
     Memory: ``(k + 1) n_train V`` records (positions, directions, validity, and in the accumulator the radiance
     rows, twice with ``cache_target=indirect``), ``(k + 1) n_train`` flags, and the carried slots (at most
@@ -148,19 +149,35 @@ class TrainingPool:
             out[self.carry[1][layout.i("rec_base")] // self.V] = True
         return out
 
-    def start(self, frame: int, layout: Any, acc_rows: list[Tensor]) -> int:
-        """Free ``frame``'s block for its new training paths: drop the carried paths still in flight from the
-        block's earlier frame (returned: how many) and clear the block's records, flags and accumulator rows
-        (``acc_rows``: views of the pool's rows in the accumulator, ``(n_paths V, 3)`` each)."""
+    def start(self, frame: int, layout: Any, acc_rows: list[Tensor]) -> tuple[int, int]:
+        """Free ``frame``'s block for its new training paths and age the carried ones; returns ``(dropped, aged)``.
+
+        Dropped: the carried paths still in flight from the block's earlier frame (``k + 1`` frames old; rare: see
+        aged). Aged: the carried paths entering the last frame they may go on in (``k`` frames old, the block the
+        next frame reuses) end into the cache at their next vertex, as a self-training path does: a long path is
+        cut short, not removed, so the records do not lose the longest paths (dropping them would train the cache
+        on the paths that end early alone, a bias towards the light that escapes soon). Clears the block's
+        records, flags and accumulator rows (``acc_rows``: views of the pool's rows in the accumulator,
+        ``(n_paths V, 3)`` each)."""
         b, V = self.block(frame), self.V
-        dropped = 0
+        dropped = aged = 0
         if self.carry is not None:
             Fc, Ic = self.carry
-            mine = self.block_of(Ic[layout.i("rec_base")] // V) == b
+            block = self.block_of(Ic[layout.i("rec_base")] // V)
+            mine = block == b
             dropped = int(mine.sum())
             if dropped:
                 keep = (~mine).nonzero().squeeze(1)
                 self.carry = (Fc[:, keep].contiguous(), Ic[:, keep].contiguous()) if len(keep) else None
+                block = block[keep]
+        if self.carry is not None and self.blocks > 1:
+            Ic = self.carry[1]
+            old = block == self.block(frame + 1)
+            aged = int(old.sum())
+            if aged:  # n_term: the vertex at which the path terminates into the cache (0: undecided)
+                n, n_term = Ic[layout.i("n")], Ic[layout.i("n_term")]
+                soon = n + 1
+                Ic[layout.i("n_term")] = torch.where(old & ((n_term == 0) | (n_term > soon)), soon, n_term)
         t = self.tids(frame)
         r = slice(t.start * V, t.stop * V)
         for rows in acc_rows:
@@ -169,7 +186,7 @@ class TrainingPool:
         self.scattered[t] = False
         self.finished[t] = False
         self.started[b] = frame
-        return dropped
+        return dropped, aged
 
     def state_dict(self) -> dict[str, Any]:
         return {"rec_x": self.rec_x.cpu(), "rec_d": self.rec_d.cpu(), "rec_valid": self.rec_valid.cpu(),
@@ -215,6 +232,7 @@ class FrameTrace:
     finished: Tensor | None = None  # (pool paths,) bool: the pool paths that ended in this frame
     in_flight: Tensor | None = None  # (pool paths,) bool: carried into the next frame
     dropped: int = 0  # carried paths dropped at this frame's start (older than carry_frames)
+    aged: int = 0  # carried paths in their last frame at its start: they end into the cache at their next vertex
     fused_tail: bool = False  # the wavefront's structure has the one-thread tail (Wavefront.fusable)
     reuse: Any = None  # the render paths' reuse vertices (reuse.VertexRecord; None without reuse)
     # renderer.debias: (n_render, 3) each render sample's suffix row (a view of acc; zero where not continued),
@@ -351,7 +369,7 @@ class NRCPathTracer:
         machine, self.backend, self.backend_reason = core.choose(total * self.frames)
         layout = machine.step.layout
         pool_rows = [acc[n_pixels:discard]] + ([acc[discard + 1:discard + 1 + n_rec]] if indirect else [])
-        dropped = pool.start(ps.frame, layout, pool_rows)
+        dropped, aged = pool.start(ps.frame, layout, pool_rows)
         finished_before = pool.finished.clone()
         rec = self.settings.reuse.record(ps.n_render, self.scene.g, self.scene.albedo, dev)
         hv = NRCCollector(n_pixels, ps.n_render, V, pool.rec_x, pool.rec_d, pool.rec_valid, pool.scattered,
@@ -391,7 +409,7 @@ class NRCPathTracer:
             rec_d=pool.rec_d[tids.start * V:tids.stop * V], rec_valid=pool.rec_valid[tids.start * V:tids.stop * V],
             scattered=pool.scattered[tids], counts=counts, timers=timers,
             direct=acc[discard + 1:discard + 1 + n_rec] if indirect else None, reuse=rec, pool=pool,
-            finished=pool.finished & ~finished_before, in_flight=pool.in_flight(layout), dropped=dropped,
+            finished=pool.finished & ~finished_before, in_flight=pool.in_flight(layout), dropped=dropped, aged=aged,
             fused_tail=wf.fusable, **debias,
         )
 

@@ -322,7 +322,8 @@ class NRCRenderer:
     @staticmethod
     def _carry_stats(trace: Any, frame: int) -> dict[str, Any]:
         """The training paths carried across frames: in flight at the frame's end, ended in this frame after their
-        own (and their mean delay in frames), dropped at its start (older than ``carry_frames``)."""
+        own (and their mean delay in frames), aged at its start (in their last frame: they end into the cache at their
+        next vertex) and dropped there (older than ``carry_frames``)."""
         pool = trace.pool
         own = pool.tids(frame)
         late = trace.finished.clone()
@@ -332,7 +333,8 @@ class NRCRenderer:
         if n_late:
             delay = float((frame - pool.started[pool.block_of(late.nonzero().squeeze(1))]).float().mean())
         return {"training_paths_in_flight": int(trace.in_flight.sum()), "training_paths_late": n_late,
-                "training_late_frames": delay, "training_paths_dropped": trace.dropped}
+                "training_late_frames": delay, "training_paths_aged": trace.aged,
+                "training_paths_dropped": trace.dropped}
 
     def _check_training(self, frame: int, stats: dict[str, Any]) -> None:
         """Warn about non-finite predictions and skipped steps; stop a cache that keeps diverging."""

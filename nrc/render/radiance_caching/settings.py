@@ -31,8 +31,9 @@ class TrainingSettings:
     unbiased_fraction: float | None  # probability that a training path never terminates into the cache; None: auto
     unbiased_max_vertices: int  # ... until this vertex after all (0: never; it runs to max_scatter)
     ring_buffer: int | None  # records kept from earlier frames; None: auto (RING_FRAMES frames of records, capped)
-    carry_frames: int | None = 0  # later frames a training path still going at its frame's end may go on in (0: the
-    # frame waits for it); None: auto (auto_training_regime)
+    carry_frames: int | None = None  # later frames a training path still going at its frame's end may go on in (0:
+    # the frame waits for it; in the last one it ends into the cache at its next vertex); None: auto
+    # (auto_training_regime)
     query_weights: str = "raw"  # cache weights of the training paths' terminal queries: ema | raw
     overlap: bool = False  # CPU: a frame's training steps run on a second thread during the next frame's one-thread
     # tail (nrc.render.radiance_caching.trainer); False: at the frame's end, on every thread
