@@ -170,14 +170,14 @@ class TrainingPool:
                 keep = (~mine).nonzero().squeeze(1)
                 self.carry = (Fc[:, keep].contiguous(), Ic[:, keep].contiguous()) if len(keep) else None
                 block = block[keep]
-        if self.carry is not None and self.blocks > 1:
-            Ic = self.carry[1]
-            old = block == self.block(frame + 1)
-            aged = int(old.sum())
-            if aged:  # n_term: the vertex at which the path terminates into the cache (0: undecided)
-                n, n_term = Ic[layout.i("n")], Ic[layout.i("n_term")]
-                soon = n + 1
-                Ic[layout.i("n_term")] = torch.where(old & ((n_term == 0) | (n_term > soon)), soon, n_term)
+            if self.carry is not None:  # what is left (with one block, nothing: all were this block's)
+                Ic = self.carry[1]
+                old = block == self.block(frame + 1)
+                aged = int(old.sum())
+                if aged:  # n_term: the vertex at which the path terminates into the cache (0: undecided)
+                    n, n_term = Ic[layout.i("n")], Ic[layout.i("n_term")]
+                    soon = n + 1
+                    Ic[layout.i("n_term")] = torch.where(old & ((n_term == 0) | (n_term > soon)), soon, n_term)
         t = self.tids(frame)
         r = slice(t.start * V, t.stop * V)
         for rows in acc_rows:
