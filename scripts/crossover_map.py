@@ -102,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup", type=int, default=30)
     p.add_argument("--frames", type=int, default=4)
     p.add_argument("--nrc-spp", default="1,4", help="NRC spp per frame (the best at equal time is reported)")
+    p.add_argument("--nrc-repeats", type=int, default=1,
+                   help="independent NRC runs (seeds) per point, their scored frames pooled: one seed is one draw of "
+                        "a spread as wide as some differences the map reports")
     p.add_argument("--ref-spp", type=int, default=None,
                    help="spp of every point's reference (default: each point's own, POINTS); larger images need fewer")
     p.add_argument("--nrc", default="renderer=nrc,renderer.backend=compiled", help="the NRC configuration's overrides")
@@ -139,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
                     "--acc-budget-s", str(args.cold_budget_s), "--acc-pt-spp", str(args.cold_pt_spp), *scene]
         else:
             cmd += ["--mode", "single", "--repeats", "2", "--pt-spp", args.pt_spp, "--warmup", str(args.warmup),
-                    "--frames", str(args.frames), "--nrc-spp", args.nrc_spp, *scene]
+                    "--frames", str(args.frames), "--nrc-spp", args.nrc_spp, "--nrc-repeats", str(args.nrc_repeats),
+                    *scene]
         points[name] = (scene, ref_spp, out, cmd)
     todo = {name: cmd for name, (_, _, out, cmd) in points.items() if not (out / "summary.json").is_file()}
     if args.jobs != "none" and todo:

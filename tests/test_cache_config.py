@@ -7,6 +7,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from nrc.cache import build_radiance_cache
+from nrc.cache.encodings.factory import auto_log2_hashmap_size
 from nrc.cache.encodings.hashgrid import HashGridEncoding
 from nrc.errors import ConfigError
 from nrc.volume.grid import DensityGrid
@@ -34,15 +35,34 @@ def test_default_hashgrid_is_sized_to_the_grid():
     """The default position hash grid ends at the density grid's resolution (``max_resolution: grid``)."""
     cfg = _compose("hashgrid_oneblob", "none")
     grid = DensityGrid(torch.rand(40, 24, 20), center=(0, 0, 0), diagonal=2.0, density_scale=1.0)
-    cache = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, grid, "cpu", 0)
+    cache = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, grid, "cpu", 0, training_paths=4608)
     enc = cache.network.encoding.encodings[0]
     assert isinstance(enc, HashGridEncoding)
-    assert (enc.n_levels, enc.n_features_per_level, enc.hashmap_size) == (8, 2, 2**19)
+    assert (enc.n_levels, enc.n_features_per_level, enc.hashmap_size) == (8, 2, 2**16)  # auto: 16 x 4,608 rows
+    assert cache.log2_hashmap_size == 16
     assert enc.scales[0].item() + 1 == pytest.approx(16.0) and enc.scales[-1].item() + 1 == pytest.approx(40.0, rel=1e-5)
     assert cache.settings.n_neurons == 64 and cache.settings.n_hidden_layers == 5
     # A grid coarser than N_min puts every level at N_min.
-    coarse = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, _grid(), "cpu", 0)
+    coarse = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, _grid(), "cpu", 0, training_paths=4608)
     assert coarse.network.encoding.encodings[0].resolutions == (16,) * 8
+
+
+@pytest.mark.parametrize(("paths", "log2"), [(1, 14), (1024, 14), (4096, 16), (4608, 16), (8192, 17),
+                                             (40960, 19), (10**7, 19)])
+def test_auto_hash_table_has_16_rows_per_training_path_within_2_14_to_2_19(paths, log2):
+    assert auto_log2_hashmap_size(paths) == log2
+    cfg = _compose("hashgrid_oneblob", "none", ("encoding.position.n_levels=2",))
+    cache = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, _grid(), "cpu", 0, training_paths=paths)
+    assert cache.network.encoding.encodings[0].hashmap_size == 2**log2
+
+
+def test_auto_hash_table_needs_the_training_paths():
+    cfg = _compose("hashgrid_oneblob", "none")
+    with pytest.raises(ConfigError, match=r"encoding\.position\.log2_hashmap_size: 'auto' sizes the table"):
+        build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, _grid(), "cpu", 0)
+    with pytest.raises(ConfigError, match=r"log2_hashmap_size"):
+        cfg = _compose("hashgrid_oneblob", "none", ("encoding.position.log2_hashmap_size=big",))
+        build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, _grid(), "cpu", 0, training_paths=4608)
 
 
 def test_spindler_hashgrid_config():

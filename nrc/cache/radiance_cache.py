@@ -29,6 +29,7 @@ from nrc.config import ConfigReader
 from nrc.cache.ema import WeightEMA
 from nrc.cache.encodings.composite import CompositeEncoding
 from nrc.cache.encodings.factory import build_encoding
+from nrc.cache.encodings.hashgrid import HashGridEncoding
 from nrc.cache.encodings.identity import IdentityEncoding
 from nrc.cache.inputs import ExtraInputs, InputBuilder
 from nrc.cache.loss import relative_l2_luminance
@@ -93,6 +94,12 @@ class RadianceCache:
     @property
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.network.parameters())
+
+    @property
+    def log2_hashmap_size(self) -> int | None:
+        """``log2 T`` of the position hash grid's tables (``auto`` resolved), None without a hash grid."""
+        sizes = [m.hashmap_size for m in self.network.modules() if isinstance(m, HashGridEncoding)]
+        return sizes[0].bit_length() - 1 if sizes else None
 
     def _raw(self, positions: Tensor, directions: Tensor) -> Tensor:
         if positions.dim() != 2 or positions.shape[1] != 3 or directions.shape != positions.shape:
@@ -172,7 +179,7 @@ class RadianceCache:
 
 
 def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: Any, grid: DensityGrid,
-                         device: torch.device | str, seed: int) -> RadianceCache:
+                         device: torch.device | str, seed: int, training_paths: int | None = None) -> RadianceCache:
     """Build a :class:`RadianceCache` from the ``cache``, ``encoding`` and ``extra_inputs`` config blocks.
 
     Args:
@@ -182,6 +189,9 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
         grid: the medium's density grid.
         device: device of the network (cpu or cuda).
         seed: seed of the initial weights (same seed, same weights on every device).
+        training_paths: the training paths a frame of the renderer that trains it, for a hash grid's
+            ``log2_hashmap_size: auto`` (:func:`nrc.cache.encodings.factory.auto_log2_hashmap_size`); None for a
+            cache built on its own (``auto`` is then an error).
 
     On CPU this also calls :func:`nrc.cache.allocator.retain_freed_memory` (process-wide glibc malloc
     tuning; without it large temporaries are page-faulted anew on every step).
@@ -201,7 +211,7 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
     (pos_dims, pos_periodic), (dir_dims, dir_periodic) = inputs.column_blocks[:2]
     generator = torch.Generator().manual_seed(int(seed))
     pos_enc, pos_adam = build_encoding(pos_cfg, pos_dims, pos_periodic, generator,
-                                       grid_resolution=max(grid.shape))
+                                       grid_resolution=max(grid.shape), training_paths=training_paths)
     dir_enc, dir_adam = build_encoding(dir_cfg, dir_dims, dir_periodic, generator, allowed=DIRECTION_OTYPES)
     parts = [(pos_enc, pos_dims), (dir_enc, dir_dims)]
     if extras.n_dims:

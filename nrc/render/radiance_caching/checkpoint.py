@@ -5,7 +5,7 @@ File layout: the 8-byte magic ``NRCCKPT\\n``, the 32-byte SHA-256 of the rest, t
 None), so it loads with ``torch.load(weights_only=True)``: no pickled code runs. Nearly all of a checkpoint
 is the cache's hash tables, four times over (the raw weights, their EMA and Adam's two moments, all needed
 for an exact resume); compression halves a young cache's file (zeros in the moments of untouched entries:
-52.9 -> 28.5 MB at the default 2^21-entry tables, +0.8 s per write). Writes go to ``<name>.tmp`` and are renamed over
+52.9 -> 28.5 MB with 2^19-row tables, +0.8 s per write; `log2_hashmap_size: auto` makes them smaller). Writes go to ``<name>.tmp`` and are renamed over
 the file (atomic on POSIX), so an interrupted write leaves the previous checkpoint intact.
 
 Payload keys: ``version`` (:data:`VERSION`), ``frame`` (frames done), ``cache`` (raw weights, EMA, Adam

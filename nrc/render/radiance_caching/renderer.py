@@ -134,8 +134,6 @@ class NRCRenderer:
         self.settings = st = NRCSettings.from_config(cfg.renderer)
         self.frames = app_checks(cfg, own_cache=cache is None)
         self.display = DisplaySettings.from_config(cfg)
-        self.cache = cache if cache is not None else build_radiance_cache(
-            cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed)
         self.batch_filter = make_batch_filter(cfg.batch_filter)
         tr = st.training
         self.medium_mask = medium_pixel_mask(scene.camera, scene.grid)  # (H, W) bool: the flicker figure's pixels
@@ -144,6 +142,10 @@ class NRCRenderer:
             w, h = auto_training_size(self.medium_pixels, scene.camera.width, scene.camera.height,
                                       tr.paths_per_pixel, tr.min_paths, tr.max_paths)
             tr = replace(tr, width=w, height=h)
+        # the hash table sized to the training paths (encoding.position.log2_hashmap_size: auto)
+        self.cache = cache if cache is not None else build_radiance_cache(
+            cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed,
+            training_paths=tr.width * tr.height)
         self.optical_depth = None  # the median over the camera rays, when unbiased_fraction or carry_frames is auto
         if tr.unbiased_fraction is None or tr.carry_frames is None:
             regime, self.optical_depth = auto_training_regime(scene, st.animate)
@@ -509,6 +511,7 @@ class NRCRenderer:
             "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,
             "compiled_graphs_in_process": compiled_graphs() if self.tracer.backend == "compiled" else None,
             "cache_parameters": self.cache.n_parameters if hasattr(self.cache, "n_parameters") else None,
+            "cache_log2_hashmap_size": getattr(self.cache, "log2_hashmap_size", None),
             "cache_steps": getattr(self.cache, "n_steps", None),
             "cache_skipped_steps": getattr(self.cache, "n_skipped_steps", None),
             "training_backend": getattr(self.cache, "training_backend", None),
