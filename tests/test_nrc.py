@@ -712,6 +712,12 @@ def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
     fixed = NRCRenderer(scene, compose([*base, "renderer.training.ring_buffer=1000"]),
                         cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     assert fixed.ring.capacity == 1000
+    # encoding.position.log2_hashmap_size: auto sizes the renderer's own cache to its training paths
+    for w, h, log2 in ((64, 64, 16), (96, 96, 17)):  # 4,096 paths: 2^16 rows a level; 9,216: 2^17
+        own = NRCRenderer(scene, compose([*base, f"renderer.training.width={w}", f"renderer.training.height={h}",
+                                          "encoding.position.n_levels=2"]))
+        assert own.cache.log2_hashmap_size == log2
+        assert own.cache.network.encoding.encodings[0].hashmap_size == 2**log2
     with pytest.raises(ConfigError, match="both be auto"):
         NRCRenderer(scene, compose([*base, "renderer.training.width=auto", "renderer.training.height=64"]),
                     cache=StubCache(lambda x, dd: torch.zeros_like(x)))
