@@ -49,8 +49,8 @@ def test_default_hashgrid_is_sized_to_the_grid():
 
 @pytest.mark.parametrize(("paths", "log2"), [(1, 14), (1024, 14), (4096, 16), (4608, 16), (8192, 17),
                                              (40960, 19), (10**7, 19)])
-def test_auto_hash_table_has_16_rows_per_training_path_within_2_14_to_2_19(paths, log2):
-    assert auto_log2_hashmap_size(paths) == log2
+def test_auto_hash_table_has_16_rows_per_training_path_within_2_14_to_2_19_in_thick_media(paths, log2):
+    assert auto_log2_hashmap_size(paths) == log2 and auto_log2_hashmap_size(paths, thick=False) == 19
     cfg = _compose("hashgrid_oneblob", "none", ("encoding.position.n_levels=2",))
     cache = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, _grid(), "cpu", 0, training_paths=paths)
     assert cache.network.encoding.encodings[0].hashmap_size == 2**log2

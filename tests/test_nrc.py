@@ -712,10 +712,13 @@ def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
     fixed = NRCRenderer(scene, compose([*base, "renderer.training.ring_buffer=1000"]),
                         cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     assert fixed.ring.capacity == 1000
-    # encoding.position.log2_hashmap_size: auto sizes the renderer's own cache to its training paths
-    for w, h, log2 in ((64, 64, 16), (96, 96, 17)):  # 4,096 paths: 2^16 rows a level; 9,216: 2^17
-        own = NRCRenderer(scene, compose([*base, f"renderer.training.width={w}", f"renderer.training.height={h}",
-                                          "encoding.position.n_levels=2"]))
+    # encoding.position.log2_hashmap_size: auto sizes the renderer's own cache to its training paths in a thick
+    # medium (4,096 paths: 2^16 rows a level; 9,216: 2^17) and keeps 2^19 in a moderate one
+    for w, h, density, log2 in ((64, 64, 1, 16), (96, 96, 1, 17), (64, 64, 0.1, 19)):
+        c = compose([*base, f"renderer.training.width={w}", f"renderer.training.height={h}",
+                     f"scene.volume.density_scale={density}", "encoding.position.n_levels=2"])
+        own = NRCRenderer(load_scene(c.scene), c)
+        assert (own.optical_depth >= 40) == (density == 1)
         assert own.cache.log2_hashmap_size == log2
         assert own.cache.network.encoding.encodings[0].hashmap_size == 2**log2
     with pytest.raises(ConfigError, match="both be auto"):
@@ -785,7 +788,7 @@ def test_flicker_in_metrics_and_lower_when_frames_accumulate():
 def test_auto_unbiased_fraction_follows_the_optical_depth():
     """training.unbiased_fraction=auto: half the training paths run to the end in a thick cloud (median optical
     depth over the camera rays >= 40) under a static camera and light, a quarter in a moderate one or animated;
-    carry_frames=auto (not the default, 0): 4 in the thick cloud, 0 else; a fixed number stays as given; other words
+    carry_frames=auto: 4 in the thick cloud of albedo >= 0.99, 0 else; a fixed number stays as given; other words
     are config errors naming the key."""
     from nrc.render.radiance_caching.settings import NRCSettings, auto_unbiased_fraction
     from nrc.volume.optical_depth import scene_optical_depth
@@ -802,6 +805,10 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
     r = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
     assert r.settings.training.unbiased_fraction == 0.5 and r.optical_depth >= 40
     assert r.settings.training.carry_frames == 4 and r.tracer.carry_frames == 4  # carry_frames=auto: thick
+    grey = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",  # only where
+                    "renderer.training.carry_frames=auto", "scene.volume.density_scale=4", "scene.volume.albedo=0.95"])
+    r = NRCRenderer(load_scene(grey.scene), grey, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 0.5
     thin = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=0.5",
                     "renderer.training.carry_frames=auto"])
     r = NRCRenderer(load_scene(thin.scene), thin, cache=StubCache(lambda x, d: torch.zeros_like(x)))

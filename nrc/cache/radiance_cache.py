@@ -179,7 +179,8 @@ class RadianceCache:
 
 
 def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: Any, grid: DensityGrid,
-                         device: torch.device | str, seed: int, training_paths: int | None = None) -> RadianceCache:
+                         device: torch.device | str, seed: int, training_paths: int | None = None,
+                         thick: bool = True) -> RadianceCache:
     """Build a :class:`RadianceCache` from the ``cache``, ``encoding`` and ``extra_inputs`` config blocks.
 
     Args:
@@ -192,6 +193,7 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
         training_paths: the training paths a frame of the renderer that trains it, for a hash grid's
             ``log2_hashmap_size: auto`` (:func:`nrc.cache.encodings.factory.auto_log2_hashmap_size`); None for a
             cache built on its own (``auto`` is then an error).
+        thick: whether the medium is thick (the renderer's ``auto`` regime), for the same.
 
     On CPU this also calls :func:`nrc.cache.allocator.retain_freed_memory` (process-wide glibc malloc
     tuning; without it large temporaries are page-faulted anew on every step).
@@ -211,7 +213,8 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
     (pos_dims, pos_periodic), (dir_dims, dir_periodic) = inputs.column_blocks[:2]
     generator = torch.Generator().manual_seed(int(seed))
     pos_enc, pos_adam = build_encoding(pos_cfg, pos_dims, pos_periodic, generator,
-                                       grid_resolution=max(grid.shape), training_paths=training_paths)
+                                       grid_resolution=max(grid.shape), training_paths=training_paths,
+                                       thick=thick)
     dir_enc, dir_adam = build_encoding(dir_cfg, dir_dims, dir_periodic, generator, allowed=DIRECTION_OTYPES)
     parts = [(pos_enc, pos_dims), (dir_enc, dir_dims)]
     if extras.n_dims:

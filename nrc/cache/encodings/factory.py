@@ -8,7 +8,7 @@ Keys per ``otype`` (case-insensitive; unknown keys are errors):
 * ``OneBlob``: ``n_bins`` (>= 1). Wrap-around is not a key: it is set for the periodic input
   dimensions (the direction's azimuth) by the caller.
 * ``HashGrid``: ``n_levels`` (>= 1), ``n_features_per_level`` (>= 1), ``log2_hashmap_size`` (1..24, or
-  ``auto``: sized to the NRC renderer's training paths a frame, :func:`auto_log2_hashmap_size`),
+  ``auto``: sized to the NRC renderer's training paths a frame in a thick medium, :func:`auto_log2_hashmap_size`),
   ``base_resolution`` (>= 1), and exactly one of ``per_level_scale`` (>= 1) or ``max_resolution``
   (>= ``base_resolution``; then ``b = (N_max / N_min)^(1 / (L - 1))``), with the finest resolution
   at most 2^20. ``max_resolution: grid`` sizes the finest level to the medium: the density grid's
@@ -38,22 +38,26 @@ OTYPES = ("Identity", "Frequency", "TriangleWave", "OneBlob", "HashGrid")
 MAX_RESOLUTION = 1 << 20
 """Finest hash-grid resolution accepted: beyond it float32 positions cannot resolve the cells."""
 ROWS_PER_TRAINING_PATH = 16
-"""``log2_hashmap_size: auto``: table rows per level for each training path a frame (rounded to a power of two)."""
+"""``log2_hashmap_size: auto`` in a thick medium: table rows per level for each training path a frame (rounded to
+a power of two)."""
 AUTO_LOG2_RANGE = (14, 19)
 """``log2_hashmap_size: auto`` stays in this range (19: Müller et al. 2021's table, the largest measured here)."""
 
 
-def auto_log2_hashmap_size(training_paths: int) -> int:
-    """``log2 T`` for ``training_paths`` training paths a frame: ``log2(ROWS_PER_TRAINING_PATH x paths)`` rounded,
-    clamped to :data:`AUTO_LOG2_RANGE`.
+def auto_log2_hashmap_size(training_paths: int, thick: bool = True) -> int:
+    """``log2 T`` for ``training_paths`` training paths a frame: in a thick medium ``log2(ROWS_PER_TRAINING_PATH x
+    paths)`` rounded, clamped to :data:`AUTO_LOG2_RANGE`; otherwise the range's top.
 
-    A table learns only what training records reach it: at 160x90 (4,608 training paths a frame, ~18k records in
-    4 Adam steps) a table of 2^16 rows a level learns the thick cloud as well as 2^19 (relMSE after 30 frames,
-    docs/benchmarks.md "A hash table sized to the training paths") at a third of the training step's table-wide
-    work (Adam, the EMA, the gradient's zeroing over every entry, each step). 4,096 paths (the default
+    A table learns only what training records reach it, and pays every Adam step for all its entries (Adam, the
+    EMA, the gradient's zeroing). At 160x90 (4,608 training paths a frame, ~18k records in 4 steps) a table of 2^16
+    rows a level learns the thick cloud as well as 2^19 (NRC+OIDN relMSE after 30 frames, three seeds, -3 % to
+    +1 %) at 0.7x the training time; in moderate clouds (median optical depth 7-39) it was 5-12 % worse, so they
+    keep 2^19 (docs/benchmarks.md, "A hash table sized to the training paths"). 4,096 paths (the default
     ``min_paths``) give 2^16, 40,960 (``max_paths``) 2^19.
     """
     lo, hi = AUTO_LOG2_RANGE
+    if not thick:
+        return hi
     return min(max(round(math.log2(ROWS_PER_TRAINING_PATH * max(int(training_paths), 1))), lo), hi)
 
 
@@ -65,6 +69,7 @@ def build_encoding(
     allowed: Sequence[str] = OTYPES,
     grid_resolution: int | None = None,
     training_paths: int | None = None,
+    thick: bool = True,
 ) -> tuple[nn.Module, AdamSettings | None]:
     """Build the encoding described by ``cfg`` for ``n_dims`` inputs.
 
@@ -76,6 +81,7 @@ def build_encoding(
         allowed: the ``otype`` values valid at this place.
         grid_resolution: the medium's largest grid dimension, for ``max_resolution: grid``.
         training_paths: the NRC renderer's training paths a frame, for ``log2_hashmap_size: auto``.
+        thick: whether the medium is thick (the renderer's ``auto`` regime), for ``log2_hashmap_size: auto``.
 
     Returns:
         ``(module, adam)``: the encoding (with ``out_dim``) and, for trainable encodings, the Adam
@@ -92,13 +98,14 @@ def build_encoding(
     elif otype == "OneBlob":
         module = OneBlobEncoding(n_dims, cfg.get_int("n_bins", lo=1), wrap=periodic)
     else:
-        module, adam = _build_hashgrid(cfg, n_dims, generator, grid_resolution, training_paths)
+        module, adam = _build_hashgrid(cfg, n_dims, generator, grid_resolution, training_paths, thick)
     cfg.finish()
     return module, adam
 
 
 def _build_hashgrid(cfg: ConfigReader, n_dims: int, generator: torch.Generator,
-                    grid_resolution: int | None, training_paths: int | None) -> tuple[nn.Module, AdamSettings]:
+                    grid_resolution: int | None, training_paths: int | None,
+                    thick: bool) -> tuple[nn.Module, AdamSettings]:
     if n_dims != 3:
         raise ConfigError(f"{cfg.key('otype')}: HashGrid encodes 3-D positions, not {n_dims}-D inputs")
     n_levels = cfg.get_int("n_levels", lo=1)
@@ -107,7 +114,7 @@ def _build_hashgrid(cfg: ConfigReader, n_dims: int, generator: torch.Generator,
         if training_paths is None:
             raise ConfigError(f"{cfg.key('log2_hashmap_size')}: 'auto' sizes the table to the NRC renderer's training "
                               "paths; give an integer for a cache built on its own")
-        log2_t = auto_log2_hashmap_size(training_paths)
+        log2_t = auto_log2_hashmap_size(training_paths, thick)
     else:
         log2_t = cfg.get_int("log2_hashmap_size", lo=1, hi=24)
     if n_levels << log2_t >= 2**31:

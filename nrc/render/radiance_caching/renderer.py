@@ -60,7 +60,7 @@ from nrc.render.radiance_caching.frame_log import LIGHT_SCALARS, FrameLog
 from nrc.render.radiance_caching.inference_filter import filtered_query
 from nrc.render.radiance_caching.paths import NRCPathTracer, PathSet
 from nrc.render.radiance_caching.trainer import Trainer, TrainingJob
-from nrc.render.radiance_caching.settings import (CARRY_FRAMES, UNBIASED_FRACTION, NRCSettings, app_checks,
+from nrc.render.radiance_caching.settings import (UNBIASED_FRACTION, NRCSettings, app_checks, auto_carry_frames,
                                                   auto_training_regime, ring_size)
 from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
@@ -116,6 +116,19 @@ class _StopOnSignal:
         self._restore()
 
 
+def _setting(cfg: Any, *keys: str) -> Any:
+    """``cfg[k0][k1]...`` or None where a level is missing (a config group the run does not use)."""
+    node = cfg
+    for k in keys:
+        try:
+            node = node.get(k)
+        except AttributeError:
+            return None
+        if node is None:
+            return None
+    return node
+
+
 class NRCRenderer:
     """The NRC frame loop (see the module docstring).
 
@@ -142,17 +155,19 @@ class NRCRenderer:
             w, h = auto_training_size(self.medium_pixels, scene.camera.width, scene.camera.height,
                                       tr.paths_per_pixel, tr.min_paths, tr.max_paths)
             tr = replace(tr, width=w, height=h)
-        # the hash table sized to the training paths (encoding.position.log2_hashmap_size: auto)
-        self.cache = cache if cache is not None else build_radiance_cache(
-            cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed,
-            training_paths=tr.width * tr.height)
-        self.optical_depth = None  # the median over the camera rays, when unbiased_fraction or carry_frames is auto
-        if tr.unbiased_fraction is None or tr.carry_frames is None:
+        # the auto rules' regime (settings.py): thick = median optical depth >= 40, static camera and lights
+        hash_auto = cache is None and _setting(cfg, "encoding", "position", "log2_hashmap_size") == "auto"
+        self.optical_depth, regime = None, None  # the median over the camera rays, when a rule is auto
+        if tr.unbiased_fraction is None or tr.carry_frames is None or hash_auto:
             regime, self.optical_depth = auto_training_regime(scene, st.animate)
             if tr.unbiased_fraction is None:
                 tr = replace(tr, unbiased_fraction=UNBIASED_FRACTION[regime])
             if tr.carry_frames is None:
-                tr = replace(tr, carry_frames=CARRY_FRAMES[regime])
+                tr = replace(tr, carry_frames=auto_carry_frames(regime, scene.albedo))
+        # the hash table sized to the training paths in a thick cloud (encoding.position.log2_hashmap_size: auto)
+        self.cache = cache if cache is not None else build_radiance_cache(
+            cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed,
+            training_paths=tr.width * tr.height, thick=regime == "thick")
         self.settings = st = replace(st, training=tr)  # the auto choices resolved
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)

@@ -174,6 +174,7 @@ def _carry_frames(tr: ConfigReader) -> int | None:
 THICK_OPTICAL_DEPTH = 40.0  # auto: a scene whose median optical depth reaches this is thick (docs/scenes.md)
 UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/nrc_measurements.md)
 CARRY_FRAMES = {"moderate": 0, "thick": 4}  # auto's two values (docs/nrc.md, "Current defaults and why")
+CARRY_MIN_ALBEDO = 0.99  # auto carries only in a medium at least this white (cloud water; docs/benchmarks.md)
 OPTICAL_DEPTH_PIXELS = 64 * 36  # auto: the optical depth is taken over a camera of about this many pixels
 
 
@@ -194,6 +195,15 @@ def auto_training_regime(scene: Any, animate: str = "none") -> tuple[str, float]
     small = replace(cam, width=max(1, round(cam.width / k)), height=max(1, round(cam.height / k)))
     tau = scene_optical_depth(replace(scene, camera=small)).median
     return ("thick" if tau >= THICK_OPTICAL_DEPTH and animate == "none" else "moderate"), tau
+
+
+def auto_carry_frames(regime: str, albedo: float) -> int:
+    """``carry_frames: auto``: :data:`CARRY_FRAMES` of the regime (:func:`auto_training_regime`) in a medium of
+    albedo at least :data:`CARRY_MIN_ALBEDO`, else 0. In the thick cloud at albedo 0.95 carrying 4 frames gave a
+    30-35 % larger NRC+OIDN error after 30 frames than waiting (three seeds, two table sizes), at 0.99 and 1 a
+    smaller one (docs/benchmarks.md, "Carried training paths end in the cache" and "A hash table sized to the
+    training paths"); albedos between were not measured, so those wait."""
+    return CARRY_FRAMES[regime] if albedo >= CARRY_MIN_ALBEDO else 0
 
 
 def auto_unbiased_fraction(scene: Any, animate: str = "none") -> tuple[float, float]:
