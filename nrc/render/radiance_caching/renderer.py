@@ -116,19 +116,6 @@ class _StopOnSignal:
         self._restore()
 
 
-def _setting(cfg: Any, *keys: str) -> Any:
-    """``cfg[k0][k1]...`` or None where a level is missing (a config group the run does not use)."""
-    node = cfg
-    for k in keys:
-        try:
-            node = node.get(k)
-        except AttributeError:
-            return None
-        if node is None:
-            return None
-    return node
-
-
 class NRCRenderer:
     """The NRC frame loop (see the module docstring).
 
@@ -156,7 +143,7 @@ class NRCRenderer:
                                       tr.paths_per_pixel, tr.min_paths, tr.max_paths)
             tr = replace(tr, width=w, height=h)
         # the auto rules' regime (settings.py): thick = median optical depth >= 40, static camera and lights
-        hash_auto = cache is None and _setting(cfg, "encoding", "position", "log2_hashmap_size") == "auto"
+        hash_auto = cache is None and OmegaConf.select(cfg, "encoding.position.log2_hashmap_size") == "auto"
         self.optical_depth, regime = None, None  # the median over the camera rays, when a rule is auto
         if tr.unbiased_fraction is None or tr.carry_frames is None or hash_auto:
             regime, self.optical_depth = auto_training_regime(scene, st.animate)
@@ -167,7 +154,7 @@ class NRCRenderer:
         # the hash table sized to the training paths in a thick cloud (encoding.position.log2_hashmap_size: auto)
         self.cache = cache if cache is not None else build_radiance_cache(
             cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed,
-            training_paths=tr.width * tr.height, thick=regime == "thick")
+            training_paths=tr.n_paths, thick=regime == "thick")
         self.settings = st = replace(st, training=tr)  # the auto choices resolved
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)
