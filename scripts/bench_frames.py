@@ -99,6 +99,7 @@ def main() -> None:
         "calls": statistics.median(calls), "ms_per_call": 1e3 * statistics.median(t / c for t, c in zip(trace, calls)),
         "events": statistics.median(events), "us_per_event": 1e6 * statistics.median(t / e for t, e in zip(trace, events)),
         "startup_s": sum(h.get("time_compile_s", [])), "process_s": nrc_process, "backend": result.metrics["backend"],
+        "cuda_graphs": result.metrics.get("cuda_graphs"),
         "unbiased_fraction": result.metrics["unbiased_fraction"], "training_image": result.metrics["training_image"],
         "in_flight": statistics.median(h["training_paths_in_flight"][k]),
         "dropped": sum(h["training_paths_dropped"]),
@@ -119,6 +120,7 @@ def main() -> None:
         "us_per_event": 1e6 * statistics.median(x["time_render_s"] / x["scatter_events"] for x in m),
         "tail_calls": statistics.median(x.get("tail_calls", 0) for x in m),
         "startup_s": runs[0]["time_compile_s"], "process_s": pt_process, "backend": runs[0]["backend"],
+        "cuda_graphs": runs[-1].get("cuda_graphs"),
     }
     out = {"scene": args.preset, "size": [args.width, args.height], "device": args.device, "threads": args.threads,
            "nrc": out_nrc, "pt": out_pt, "ratio_frame": out_nrc["frame_s"]["median"] / out_pt["frame_s"]["median"],

@@ -10,10 +10,11 @@ timeout, all under one overall budget (``--budget``, default 540 s; a step that 
    tests, encodings and the MLP at tight tolerances, the cache's training step, a short NRC run);
 4. ``pt_canonical``: the canonical path-tracer benchmark (``+experiment=bench_canonical``) with ``device=cuda``,
    whole process and render alone, twice (the second run loads the compiled step from the cache);
-5. ``nrc_frame_480x270``, ``nrc_frame_1280x720``: NRC frames with their trace / infer / train split
+5. ``thick_frames_1280x720``, ``thick_frames_1920x1080``, ``thick_frames_1920x1080_graphs``: the thick cloud's NRC
+   frame (trace / infer / train, calls per frame) against the path tracer's 1-spp frame (``scripts/bench_frames.py``),
+   the last through CUDA graphs (``renderer.cuda_graphs=true``);
+6. ``nrc_frame_480x270``, ``nrc_frame_1280x720``: NRC frames with their trace / infer / train split
    (``scripts/bench_nrc_frame.py``);
-6. ``thick_frames_1280x720``, ``thick_frames_1920x1080``: the thick cloud's NRC frame (trace / infer / train, calls
-   per frame) against the path tracer's 1-spp frame (``scripts/bench_frames.py``);
 7. ``cache_throughput``: the radiance cache's inference / training points/s table (``scripts/bench_cache.py``).
 
 A step whose dependency is missing (CUDA, the Disney cloud given by ``--vdb``, a Python package) is skipped with a
@@ -199,18 +200,21 @@ def steps(outdir: Path, vdb: Path | None, wheelhouse: Path | None) -> list[Step]
                   f"hydra.run.dir={outdir / f'pt_canonical_{run}'}"] for run in ("cold", "warm")]
     out.append(Step("pt_canonical", "canonical path-tracer benchmark (128x72, 512 spp), cold then warm cache",
                     canonical, 240, ("cuda", "vdb", "hydra", "OpenEXR"), _parse_canonical))
+    # frames bounded by work: NRC against pt's 1-spp frame, without and with CUDA graphs (renderer.cuda_graphs)
+    for w, h, graphs, t in ((1280, 720, False, 200), (1920, 1080, False, 240), (1920, 1080, True, 240)):
+        name = f"thick_frames_{w}x{h}" + ("_graphs" if graphs else "")
+        out.append(Step(name, f"the thick cloud at {w}x{h}: NRC frame (trace / infer / train, calls) and pt 1 spp"
+                        + (", through CUDA graphs" if graphs else ""), [[
+            py, str(REPO / "scripts" / "bench_frames.py"), "--width", str(w), "--height", str(h), "--frames", "8",
+            "--skip", "3", "--pt-repeats", "3", "--device", "cuda", "--vdb", vdb_arg,
+            "--json", str(outdir / f"{name}.json"), *(["renderer.cuda_graphs=true"] if graphs else [])]],
+            t, ("cuda", "vdb", "hydra", "OpenEXR"), _parse_json(name)))
     for w, h, t in ((480, 270, 150), (1280, 720, 200)):
         name = f"nrc_frame_{w}x{h}"
         out.append(Step(name, f"NRC frames at {w}x{h}: trace / infer / train", [[
             py, str(REPO / "scripts" / "bench_nrc_frame.py"), "--width", str(w), "--height", str(h), "--frames", "8",
             "--vdb", vdb_arg, "--json", str(outdir / f"{name}.json"), "device=cuda"]],
             t, ("cuda", "vdb", "hydra", "OpenEXR"), _parse_json(name)))
-    for w, h, t in ((1280, 720, 200), (1920, 1080, 240)):  # frames bounded by work: NRC against pt's 1-spp frame
-        name = f"thick_frames_{w}x{h}"
-        out.append(Step(name, f"the thick cloud at {w}x{h}: NRC frame (trace / infer / train, calls) and pt 1 spp", [[
-            py, str(REPO / "scripts" / "bench_frames.py"), "--width", str(w), "--height", str(h), "--frames", "8",
-            "--skip", "3", "--pt-repeats", "3", "--device", "cuda", "--vdb", vdb_arg,
-            "--json", str(outdir / f"{name}.json")]], t, ("cuda", "vdb", "hydra", "OpenEXR"), _parse_json(name)))
     out.append(Step("cache_throughput", "radiance cache inference / training points/s per encoding and MLP shape", [[
         py, str(REPO / "scripts" / "bench_cache.py"), "--device", "cuda", "--reps", "3", "--no-write",
         "--markdown", str(outdir / "cache_throughput.md")]], 180, ("cuda",),

@@ -263,3 +263,48 @@ def test_compiled_training_step_falls_back_to_eager_with_its_reason(monkeypatch)
     assert loss == eager.train_step(x, d, t)
     assert cache.training_backend == "eager"
     assert cache.training_backend_reason == "torch.compile of the training step failed: RuntimeError: no C++ compiler"
+
+
+def test_training_graphs_bookkeeping():
+    """``use_graphs`` (``renderer.cuda_graphs``) with a stand-in for ``torch.cuda.make_graphed_callables``: one capture
+    per batch size, at most ``MAX_TRAINING_GRAPHS`` sizes (others eager), given the network's forward wrapped (its own
+    forward untouched), the same losses and weights as without; a failed capture trains on without graphs, saying why.
+    The graphs themselves: ``tests/test_cuda.py``."""
+    from nrc.cache.radiance_cache import MAX_TRAINING_GRAPHS
+
+    captured = []
+
+    def stand_in(module, args):
+        assert module.network is graphed.network and len(args) == 1 and not args[0].requires_grad
+        captured.append(args[0].shape[0])
+        return module
+
+    grid = _grid()
+    plain, graphed = _cache(grid), _cache(grid)
+    graphed.use_graphs(stand_in)
+    forward = graphed.network.forward
+    sizes = (300, 257, 300, 123, 64, 65, 300)
+    for step, n in enumerate(sizes):
+        x, d = _batch(grid, n, 10 + step)
+        t = torch.rand(n, 3, generator=torch.Generator().manual_seed(step))
+        assert graphed.train_step(x, d, t) == plain.train_step(x, d, t)
+    assert captured == [300, 257, 123, 64][:MAX_TRAINING_GRAPHS]
+    assert graphed.graph_report == {"batch_sizes": [64, 123, 257, 300], "reason": None}
+    assert graphed.network.forward == forward
+    assert all(torch.equal(a, b) for a, b in zip(graphed.network.parameters(), plain.network.parameters()))
+
+    def refuse(module, args):
+        raise RuntimeError("CUDA error: operation not permitted when stream is capturing\nmore")
+
+    broken = _cache(grid)
+    broken.use_graphs(refuse)
+    x, d = _batch(grid, 100, 1)
+    with pytest.warns(UserWarning, match="training without CUDA graphs"):
+        assert math.isfinite(broken.train_step(x, d, torch.rand(100, 3)))
+    assert broken.n_steps == 1 and broken.graph_report == {
+        "batch_sizes": [], "reason": "capture of a 100-record training step failed: RuntimeError: CUDA error: "
+                                     "operation not permitted when stream is capturing"}
+    compiled = _cache(grid, cache={**CACHE, "compile_training": True})
+    compiled.use_graphs(stand_in)
+    assert compiled.graph_report["reason"] == "cache.compile_training compiles the training step instead"
+    assert _cache(grid).graph_report is None

@@ -137,3 +137,37 @@ def test_short_nrc_run_on_cuda():
     assert np.isfinite(result.image).all() and (result.image >= 0).all()
     pt = np.mean(_pt_images(["scene=sun_sky", "scene.integrator.spp=64"], "cuda", "eager", range(2)))
     assert 0.5 * pt < result.image.mean() < 2.0 * pt
+
+
+@pytest.mark.parametrize("backend", ["eager", "compiled"])
+def test_cuda_graphs_give_the_same_image(backend):
+    """``renderer.cuda_graphs=true``: every step call replays a captured graph of its slot bucket; the image equals
+    the one without graphs (each slot's result is its own column's; the kernels are the same), and the graphs were
+    used (captured, not turned off by a failed capture)."""
+    over = SCENES["sun_sky"][:2] + ["scene.integrator.spp=4", "renderer.slots=4096"]
+    want = _pt_images(over, "cuda", backend, range(1))[0]
+    from nrc.render.pt import PathTracer
+    from nrc.scene import load_scene
+
+    cfg = compose(["renderer=pt", *TINY, *over, "device=cuda", f"renderer.backend={backend}",
+                   "scene.integrator.seed=0", "renderer.cuda_graphs=true"])
+    result = PathTracer(load_scene(cfg.scene, cfg.device), cfg).render()
+    report = result.metrics["cuda_graphs"]
+    assert report["on"] and report["captures"] >= 2, report
+    np.testing.assert_allclose(result.image, want, rtol=1e-5, atol=1e-6)
+
+
+def test_training_graphs_match_eager_training():
+    """The cache's training step through CUDA graphs (``use_graphs``, as ``renderer.cuda_graphs`` sets it): the same
+    losses and trained predictions as eager training on CUDA, over batch sizes that repeat (graph replays) and
+    change (new captures)."""
+    _, eager = _caches(ENCODINGS["hashgrid"])
+    _, graphed = _caches(ENCODINGS["hashgrid"])
+    graphed.use_graphs()
+    for step, n in enumerate((4096, 4096, 2048, 4096, 4096)):
+        x, d, t = (a.cuda() for a in _points(n, 10 + step))
+        assert graphed.train_step(x, d, t) == pytest.approx(eager.train_step(x, d, t), rel=1e-5)
+    assert graphed.graph_report == {"batch_sizes": [2048, 4096], "reason": None}
+    x, d, _ = _points(2048, 99)
+    np.testing.assert_allclose(graphed.query(x.cuda(), d.cuda()).cpu().numpy(),
+                               eager.query(x.cuda(), d.cuda()).cpu().numpy(), rtol=1e-4, atol=1e-6)

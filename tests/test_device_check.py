@@ -35,11 +35,11 @@ def test_dry_run_lists_every_step_and_what_would_be_skipped(tmp_path):
     proc = _run(tmp_path / "out", "--dry-run")
     assert proc.returncode == 0, proc.stderr
     for name in ("environment", "install", "cuda_tests", "pt_canonical", "nrc_frame_480x270", "nrc_frame_1280x720",
-                 "thick_frames_1280x720", "thick_frames_1920x1080", "cache_throughput"):
+                 "thick_frames_1280x720", "thick_frames_1920x1080", "thick_frames_1920x1080_graphs", "cache_throughput"):
         assert f"\n{name} (timeout" in "\n" + proc.stdout, name
     assert "device=cuda" in proc.stdout and "--no-deps" in proc.stdout
     if not dc.cuda_available():
-        assert proc.stdout.count("[would be skipped: no CUDA device") == 7
+        assert proc.stdout.count("[would be skipped: no CUDA device") == 8
     assert "Disney cloud is absent" in proc.stdout or "no CUDA" in proc.stdout
     assert not (tmp_path / "out" / "device_check.json").exists()  # nothing ran
     only = _run(tmp_path / "out", "--dry-run", "--only", "cache_throughput")

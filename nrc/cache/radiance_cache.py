@@ -39,6 +39,19 @@ from nrc.cache.settings import CacheSettings
 from nrc.volume.grid import DensityGrid
 
 DIRECTION_OTYPES = ("Identity", "Frequency", "TriangleWave", "OneBlob")
+MAX_TRAINING_GRAPHS = 4  # training batch sizes with a CUDA graph (RadianceCache.use_graphs); other sizes run eagerly
+
+
+class _Forward(torch.nn.Module):
+    """The network's forward as a module of its own: ``torch.cuda.make_graphed_callables`` replaces the forward of
+    the module it is given, and the network's own forward (inference, other batch sizes) must stay as it is."""
+
+    def __init__(self, network: torch.nn.Module) -> None:
+        super().__init__()
+        self.network = network
+
+    def forward(self, raw: Tensor) -> Tensor:
+        return self.network(raw)
 
 
 class RadianceCache:
@@ -71,6 +84,45 @@ class RadianceCache:
         self.training_backend = "compiled" if settings.compile_training else "eager"
         self.training_backend_reason: str | None = None
         self._compiled_loss = None
+        self._graphs: dict[int, Any] | None = None  # batch size -> graphed forward (use_graphs), None: off
+        self._make_graphed: Any = None
+        self.graphs_reason: str | None = None  # why training graphs stopped (a capture failed), else None
+
+    def use_graphs(self, make_graphed: Any = None) -> None:
+        """``renderer.cuda_graphs`` (CUDA): the forward and backward of a training batch replay a CUDA graph
+        captured at the first batch of its size (``torch.cuda.make_graphed_callables``; at most
+        :data:`MAX_TRAINING_GRAPHS` sizes, others run eagerly). The loss, the NaN/Inf check, Adam and the EMA stay
+        eager; the weights are the same tensors, so checkpoints and the EMA see no difference. Not with
+        ``compile_training`` (it compiles the same forward). A capture that fails turns the graphs off and says why
+        (:attr:`graphs_reason`). ``make_graphed``: the capture function (tests pass a stand-in)."""
+        self._graphs = {}
+        self._make_graphed = make_graphed if make_graphed is not None else torch.cuda.make_graphed_callables
+        if self.training_backend == "compiled":
+            self.graphs_reason = "cache.compile_training compiles the training step instead"
+
+    @property
+    def graph_report(self) -> dict[str, Any] | None:
+        """The training graphs as they ran (``None``: off): batch sizes captured, and why they stopped if they did."""
+        if self._graphs is None:
+            return None
+        return {"batch_sizes": sorted(self._graphs), "reason": self.graphs_reason}
+
+    def _graphed_forward(self, raw: Tensor) -> Any:
+        """The training forward for a batch of ``raw``'s size: its graph (captured now if new), or the network."""
+        if self.graphs_reason is not None:
+            return self.network
+        n = raw.shape[0]
+        if n not in self._graphs:
+            if len(self._graphs) >= MAX_TRAINING_GRAPHS:
+                return self.network
+            try:
+                self._graphs[n] = self._make_graphed(_Forward(self.network), (raw.detach().clone(),))
+            except Exception as exc:  # noqa: BLE001 -- an op that cannot be captured: train without graphs
+                first = str(exc).splitlines()[0][:200] if str(exc) else ""
+                self.graphs_reason = f"capture of a {n}-record training step failed: {type(exc).__name__}: {first}"
+                warnings.warn(f"nrc: {self.graphs_reason}; training without CUDA graphs", stacklevel=3)
+                return self.network
+        return self._graphs[n]
 
     def _loss(self, raw: Tensor, targets: Tensor) -> Tensor:
         return relative_l2_luminance(self.network(raw), targets, self.settings.target_clamp)
@@ -142,7 +194,11 @@ class RadianceCache:
         if positions.shape[0] == 0:
             return 0.0
         raw = self._raw(positions, directions)
-        loss = self._training_loss(raw, targets.to(self.device))
+        if self._graphs is not None and self.training_backend == "eager":  # renderer.cuda_graphs: through its graph
+            net = self._graphed_forward(raw)
+            loss = relative_l2_luminance(net(raw), targets.to(self.device), self.settings.target_clamp)
+        else:
+            loss = self._training_loss(raw, targets.to(self.device))
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         # NaN/Inf anywhere in a gradient makes its sum non-finite (one cheap reduction per tensor; a sum

@@ -86,6 +86,9 @@ class PathTracerSettings:
     """``auto`` with a cold cache: renders of fewer camera samples stay eager."""
     steps_per_call: int
     """Tracking steps unrolled per compiled call."""
+    cuda_graphs: bool
+    """The step's calls through CUDA graphs of padded slot buckets (``device=cuda`` only;
+    :mod:`nrc.render.wavefront.graphs`)."""
     light_sampling: LightSamplingSettings = LightSamplingSettings()
     """How lights are sampled: ``light_selection`` (``uniform`` | ``power`` | ``ris``), ``ris.candidates``,
     ``point_light_sampling`` (``none`` | ``equiangular``) (nrc.transport.light_sampling)."""
@@ -120,6 +123,7 @@ class PathTracerSettings:
             backend=cfg.get_choice("backend", list(BACKENDS)),
             compile_min_samples=cfg.get_int("compile_min_samples", lo=0),
             steps_per_call=cfg.get_int("steps_per_call", lo=1),
+            cuda_graphs=cfg.get_bool("cuda_graphs"),
             light_sampling=LightSamplingSettings.from_config(cfg),
             reuse=ReuseSettings.from_config(cfg),
         )
@@ -188,6 +192,7 @@ class PathTracer:
             "samples": total,
             "slots": self.slots,
             "steps_per_call": self.steps_per_call,
+            "cuda_graphs": machine.graph_report,
             "time_compile_s": self.core.last_startup_s,  # spent by this render (0 when the process had it)
             "compile_cache_hit": machine.cache_hit if backend == "compiled" else None,
             "compile_cache_dir": os.environ.get("TORCHINDUCTOR_CACHE_DIR") if backend == "compiled" else None,

@@ -277,11 +277,17 @@ class NRCPathTracer:
         self.frames = 1  # frames the renderer will trace (backend=auto weighs a compile against all of them)
         self.backend: str | None = None
         self.backend_reason: str | None = None
+        self._machine: Any = None  # the last frame's machine
         self.carry_frames = tr.carry_frames  # frames a training path may go on past its own (TrainingPool)
         self.pool: TrainingPool | None = None
         self._pool_render = 0
         self._pool_rows: list[Tensor] | None = None  # a checkpoint's pool rows, until the accumulator exists
         self._acc: Tensor | None = None  # the accumulator, kept across frames (the pool's rows)
+
+    @property
+    def graph_report(self) -> dict[str, Any] | None:
+        """``renderer.cuda_graphs`` as the last frame's machine ran it (:attr:`Machine.graph_report`)."""
+        return self._machine.graph_report if self._machine is not None else None
 
     def _core(self, uniforms):
         if uniforms not in self._cores:
@@ -367,6 +373,7 @@ class NRCPathTracer:
         if suffix_base is not None:
             acc[suffix_base:] = 0.0
         machine, self.backend, self.backend_reason = core.choose(total * self.frames)
+        self._machine = machine
         layout = machine.step.layout
         pool_rows = [acc[n_pixels:discard]] + ([acc[discard + 1:discard + 1 + n_rec]] if indirect else [])
         dropped, aged = pool.start(ps.frame, layout, pool_rows)

@@ -155,6 +155,8 @@ class NRCRenderer:
         self.cache = cache if cache is not None else build_radiance_cache(
             cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed,
             training_paths=tr.n_paths, thick=regime == "thick")
+        if st.cuda_graphs and hasattr(self.cache, "use_graphs"):  # the training step's forward and backward too
+            self.cache.use_graphs()
         self.settings = st = replace(st, training=tr)  # the auto choices resolved
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)
@@ -512,6 +514,8 @@ class NRCRenderer:
             "medium_pixels": self.medium_pixels,
             "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,
             "compiled_graphs_in_process": compiled_graphs() if self.tracer.backend == "compiled" else None,
+            "cuda_graphs": self.tracer.graph_report,
+            "training_graphs": getattr(self.cache, "graph_report", None),
             "cache_parameters": self.cache.n_parameters if hasattr(self.cache, "n_parameters") else None,
             "cache_log2_hashmap_size": getattr(self.cache, "log2_hashmap_size", None),
             "cache_steps": getattr(self.cache, "n_steps", None),

@@ -61,6 +61,7 @@ class NRCSettings:
     backend: str
     steps_per_call: int
     compile_min_samples: int
+    cuda_graphs: bool  # the step's calls through CUDA graphs of padded slot buckets (nrc.render.wavefront.graphs)
     brick: int | str
     free_flight: str
     termination: Termination
@@ -99,6 +100,7 @@ class NRCSettings:
             backend=cfg.get_choice("backend", ["auto", "eager", "compiled"]),
             steps_per_call=cfg.get_int("steps_per_call", lo=1),
             compile_min_samples=cfg.get_int("compile_min_samples", lo=0),
+            cuda_graphs=cfg.get_bool("cuda_graphs"),
             brick=cfg.get_raw("brick"),  # validated by nrc.render.wavefront.wavefront_majorants
             free_flight=cfg.get_choice("free_flight", ["brick", "global"]),
             termination=Termination.from_config(cfg.block("termination")),

@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from nrc.render.compile_cache import default_inductor_cache, inductor_cache_dir, package_sources
+from nrc.render.wavefront.graphs import StepGraphs
 from nrc.render.wavefront.row_views import plain_row_views
 from nrc.render.wavefront.step import Transport
 from nrc.transport.rng import uniforms as counter_uniforms
@@ -265,8 +266,11 @@ class Machine:
     the driver's tail. A single slot is padded with an idle one (dynamic shapes specialise sizes 0 and 1).
     """
 
-    def __init__(self, step: Transport, steps_per_call: int, compile: bool, device: torch.device) -> None:
+    def __init__(self, step: Transport, steps_per_call: int, compile: bool, device: torch.device,
+                 graphs: bool = False) -> None:
         self.step, self.steps_per_call, self.compiled, self.device = step, steps_per_call, compile, device
+        # renderer.cuda_graphs: every call through a captured graph of its slot bucket (graphs.py)
+        self.graphs = StepGraphs(step.layout.nf, step.layout.ni, device) if graphs else None
 
         def track(F: Tensor, I: Tensor, P: Tensor, density: Tensor, majorant: Tensor) -> tuple[Tensor, Tensor]:
             for _ in range(steps_per_call):
@@ -339,15 +343,27 @@ class Machine:
                     inputs.density, inputs.majorant)
         return Fo[:, :1], Io[:, :1]
 
+    @property
+    def graph_report(self) -> dict[str, Any] | None:
+        """``renderer.cuda_graphs`` as it ran (``None``: off): graphs captured, and why they stopped if they did."""
+        if self.graphs is None:
+            return None
+        return {"captures": self.graphs.captures, "on": self.graphs.on, "reason": self.graphs.reason}
+
+    def _run(self, name: str, fn: Any, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
+        if self.graphs is not None and self.graphs.on and self.startup_s is not None:  # graphs after the warm-up
+            return self.graphs.run(name, fn, F, I, inputs)
+        return self._call(fn, F, I, inputs)
+
     def track(self, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
-        return self._call(self._track, F, I, inputs)
+        return self._run("track", self._track, F, I, inputs)
 
     def vertex(self, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
-        return self._call(self._vertex, F, I, inputs)
+        return self._run("vertex", self._vertex, F, I, inputs)
 
     def advance(self, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
         """One tracking step and the vertices it reaches (:meth:`Transport.advance`; :attr:`fusable` only)."""
-        return self._call(self._advance, F, I, inputs)
+        return self._run("advance", self._advance, F, I, inputs)
 
     def warm_up(self, inputs: SceneInputs, slots: int) -> float:
         """Compile (or load from the cache) by calls on idle working sets (inductor picks its parallelisation
@@ -401,21 +417,22 @@ MACHINE_CACHE = 16  # machines kept per process
 _machines: list[tuple[tuple[Any, ...], Machine]] = []
 
 
-def machine_for(step: Transport, steps_per_call: int, compile: bool, device: torch.device) -> Machine:
+def machine_for(step: Transport, steps_per_call: int, compile: bool, device: torch.device,
+                graphs: bool = False) -> Machine:
     """The process's machine for ``step``'s structure (built on first use): every tracer of the same structure
-    shares it, whatever its scene numbers, grid, camera, spp or seed."""
-    key = (step.key, steps_per_call, compile, str(device))
+    shares it, whatever its scene numbers, grid, camera, spp or seed (``graphs``: through CUDA graphs)."""
+    key = (step.key, steps_per_call, compile, str(device), graphs)
     for i, (k, machine) in enumerate(_machines):
         if k == key:
             _machines.append(_machines.pop(i))
             return machine
-    machine = Machine(step, steps_per_call, compile, device)
+    machine = Machine(step, steps_per_call, compile, device, graphs)
     _machines.append((key, machine))
     del _machines[:-MACHINE_CACHE]
     return machine
 
 
 def compiled_machine_ready(step: Transport, steps_per_call: int, device: torch.device) -> bool:
-    """This process already holds a warm compiled machine of ``step``'s structure."""
+    """This process already holds a warm compiled machine of ``step``'s structure (with or without graphs)."""
     key = (step.key, steps_per_call, True, str(device))
-    return any(k == key and m.startup_s is not None for k, m in _machines)
+    return any(k[:4] == key and m.startup_s is not None for k, m in _machines)

@@ -76,6 +76,7 @@ class Core:
     grid: Any = None
     bricks: Any = None
     scalars: tuple = ()  # (albedo, g, max_scatter, roulette threshold, throughput roulette) for P
+    graphs: bool = False  # renderer.cuda_graphs: the machine's calls through CUDA graphs (graphs.py)
     last_startup_s: float = 0.0  # compile or cache-load seconds spent by the last choose()
     point_lights: tuple = ()  # sampled equi-angularly along segments (left out of the step's light table)
     _equiangular: Any = None  # their EquiangularSampler, built by the first equiangular_queue()
@@ -102,7 +103,7 @@ class Core:
         """``(machine, backend, reason)`` for a render of ``samples`` camera samples (see the module docstring)."""
         self.last_startup_s = 0.0
         if self.backend == "eager":
-            return machine_for(self.eager_step, self.steps_per_call, False, self.device), "eager", None
+            return machine_for(self.eager_step, self.steps_per_call, False, self.device, self.graphs), "eager", None
         reason = self.unsupported_reason()
         if reason is None and self.backend == "auto" and not compiled_machine_ready(self.step, self.steps_per_call,
                                                                                   self.device):
@@ -117,7 +118,7 @@ class Core:
                 reason = (f"{samples} camera samples < renderer.compile_min_samples={self.compile_min_samples} "
                           "and no compiled step in the cache (a cold compile would outweigh the speed-up)")
         if reason is None:
-            machine = machine_for(self.step, self.steps_per_call, True, self.device)
+            machine = machine_for(self.step, self.steps_per_call, True, self.device, self.graphs)
             try:
                 self.last_startup_s = machine.warm_up(self.inputs, 1 << 16)
                 return machine, "compiled", None
@@ -125,7 +126,7 @@ class Core:
                 reason = f"torch.compile failed: {type(exc).__name__}: {failure_line(exc)}"
         if self.backend == "compiled":
             log.warning("renderer.backend=compiled: falling back to eager: %s", reason)
-        return machine_for(self.eager_step, self.steps_per_call, False, self.device), "eager", reason
+        return machine_for(self.eager_step, self.steps_per_call, False, self.device, self.graphs), "eager", reason
 
     def equiangular_queue(self, batch: int, gen: torch.Generator) -> EquiangularQueue | None:
         """The queue for the point lights' equi-angular estimate (``None``: no point light is sampled that way);
@@ -149,7 +150,7 @@ class Core:
 def build_core(scene: Any, transmittance: Any, settings: Any, program: VertexProgram | None = None,
                uniforms: Uniforms = counter_uniforms) -> Core:
     """The core for a scene and a renderer's settings, passed whole (its ``brick``, ``free_flight``, ``backend``,
-    ``steps_per_call``, ``compile_min_samples``, ``roulette``, ``light_sampling`` and ``inline_shadows``:
+    ``steps_per_call``, ``compile_min_samples``, ``cuda_graphs``, ``roulette``, ``light_sampling`` and ``inline_shadows``:
     ``False`` queues every shadow ray for the estimator), with the renderer's vertex program (default: ``pt``'s;
     :mod:`nrc.render.wavefront.program`). Point lights sampled equi-angularly are left out of the step's lights.
     """
@@ -160,6 +161,8 @@ def build_core(scene: Any, transmittance: Any, settings: Any, program: VertexPro
         value = getattr(st, key)
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ConfigError(f"renderer.{key} must be an integer >= {low}, got {value!r}")
+    if st.cuda_graphs and scene.grid.device.type != "cuda":
+        raise ConfigError(f"renderer.cuda_graphs=true needs device=cuda (the scene is on {scene.grid.device.type})")
     program = program if program is not None else VertexProgram()
     grid, lights = scene.grid, st.light_sampling.sampler(scene)
     albedo, g, max_scatter, rr = scene.albedo, scene.g, scene.integrator.max_scatter, st.roulette
@@ -177,7 +180,7 @@ def build_core(scene: Any, transmittance: Any, settings: Any, program: VertexPro
     P = step.params(grid, bricks, step.lights, albedo, g, max_scatter, thr, rr)
     inputs = SceneInputs.build(P, grid.density, bricks.flat)
     return Core(step, eager_step, inputs, majorants, transmittance, grid.device, st.backend, st.steps_per_call,
-                st.compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr),
+                st.compile_min_samples, grid, bricks, (albedo, g, max_scatter, thr, rr), graphs=st.cuda_graphs,
                 point_lights=tuple(st.light_sampling.equiangular_points(scene)))
 
 
