@@ -307,4 +307,7 @@ def test_training_graphs_bookkeeping():
     compiled = _cache(grid, cache={**CACHE, "compile_training": True})
     compiled.use_graphs(stand_in)
     assert compiled.graph_report["reason"] == "cache.compile_training compiles the training step instead"
+    bf16 = _cache(grid, cache={**CACHE, "network": {**CACHE["network"], "bf16": True}})
+    bf16.use_graphs(stand_in)
+    assert bf16.graph_report["reason"] == "cache.network.bf16: autocast's cast cache cannot be captured"
     assert _cache(grid).graph_report is None

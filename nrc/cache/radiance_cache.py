@@ -93,12 +93,14 @@ class RadianceCache:
         captured at the first batch of its size (``torch.cuda.make_graphed_callables``; at most
         :data:`MAX_TRAINING_GRAPHS` sizes, others run eagerly). The loss, the NaN/Inf check, Adam and the EMA stay
         eager; the weights are the same tensors, so checkpoints and the EMA see no difference. Not with
-        ``compile_training`` (it compiles the same forward). A capture that fails turns the graphs off and says why
+        ``compile_training`` (it compiles the same forward) nor ``network.bf16`` (autocast's cast cache). A capture that fails turns the graphs off and says why
         (:attr:`graphs_reason`). ``make_graphed``: the capture function (tests pass a stand-in)."""
         self._graphs = {}
         self._make_graphed = make_graphed if make_graphed is not None else torch.cuda.make_graphed_callables
         if self.training_backend == "compiled":
             self.graphs_reason = "cache.compile_training compiles the training step instead"
+        elif self.settings.bf16:  # a captured forward would keep autocast's casts of the weights of its capture
+            self.graphs_reason = "cache.network.bf16: autocast's cast cache cannot be captured"
 
     @property
     def graph_report(self) -> dict[str, Any] | None:
