@@ -16,3 +16,10 @@ class ConfigError(NRCError, ValueError):
 
 class VDBError(NRCError, ValueError):
     """An OpenVDB file is truncated, corrupted, or uses a feature the reader does not support."""
+
+
+def failure_line(exc: BaseException) -> str:
+    """The first line of an exception's message (at most 200 characters; empty when it has none): a failure of
+    torch's machinery (a compile, a graph capture) reported in one line."""
+    text = str(exc)
+    return text.splitlines()[0][:200] if text else ""

@@ -64,15 +64,14 @@ def test_step_graphs_equal_direct_calls():
     assert torch.equal(sg.run("track", toy, F, I, other)[0], toy(F, I, other.P, other.density, other.majorant)[0])
 
 
-def test_a_failed_capture_turns_graphs_off(caplog):
-    def refuse(fn, args, pool):
-        raise RuntimeError("operation not permitted when stream is capturing\nmore")
+def refuse(fn, args, pool):
+    raise RuntimeError("operation not permitted when stream is capturing\nmore")
 
+
+def test_a_failed_capture_turns_graphs_off(caplog):
     sg = wg.StepGraphs(5, 2, torch.device("cpu"), capture=refuse)
     F, I = state(10, 0)
-    inp = inputs()
-    got = sg.run("track", toy, F, I, inp)
-    assert torch.equal(got[0], toy(F, I, inp.P, inp.density, inp.majorant)[0])
+    assert sg.run("track", toy, F, I, inputs()) is None  # the caller runs the step itself
     assert not sg.on and sg.reason == ("capture of a 64-slot step failed: RuntimeError: operation not permitted when "
                                        "stream is capturing")
     assert "running the step without graphs" in caplog.text
@@ -96,6 +95,20 @@ def test_path_tracer_through_graphs_is_bitwise_the_same(cpu_graphs):
     report = got.metrics["cuda_graphs"]
     assert report["on"] and report["captures"] >= 4  # track and vertex, several buckets (compaction)
     assert want.metrics["cuda_graphs"] is None
+
+
+def test_a_path_tracer_whose_capture_fails_renders_without_graphs(monkeypatch):
+    """The machine runs its own calls once a capture fails (one-slot padding included): the same image, graphs off."""
+    monkeypatch.setattr(wm, "_machines", [])
+    monkeypatch.setattr(wm, "StepGraphs", functools.partial(wg.StepGraphs, capture=refuse))
+    over = ["renderer.backend=eager", "renderer.slots=300", "scene.camera.width=24", "scene.camera.height=16"]
+    want = make(over)[0].render()
+    pt = make(over)[0]
+    pt.core.graphs = True
+    got = pt.render()
+    assert torch.equal(torch.as_tensor(got.image), torch.as_tensor(want.image))
+    assert got.metrics["cuda_graphs"]["on"] is False and got.metrics["cuda_graphs"]["captures"] == 0
+    assert got.metrics["cuda_graphs"]["reason"].startswith("capture of a ")
 
 
 def test_nrc_through_graphs_is_bitwise_the_same(cpu_graphs):

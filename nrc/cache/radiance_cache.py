@@ -26,6 +26,7 @@ from torch import Tensor
 
 from nrc.cache.allocator import retain_freed_memory
 from nrc.config import ConfigReader
+from nrc.errors import failure_line
 from nrc.cache.ema import WeightEMA
 from nrc.cache.encodings.composite import CompositeEncoding
 from nrc.cache.encodings.factory import build_encoding
@@ -111,8 +112,6 @@ class RadianceCache:
 
     def _graphed_forward(self, raw: Tensor) -> Any:
         """The training forward for a batch of ``raw``'s size: its graph (captured now if new), or the network."""
-        if self.graphs_reason is not None:
-            return self.network
         n = raw.shape[0]
         if n not in self._graphs:
             if len(self._graphs) >= MAX_TRAINING_GRAPHS:
@@ -120,14 +119,15 @@ class RadianceCache:
             try:
                 self._graphs[n] = self._make_graphed(_Forward(self.network), (raw.detach().clone(),))
             except Exception as exc:  # noqa: BLE001 -- an op that cannot be captured: train without graphs
-                first = str(exc).splitlines()[0][:200] if str(exc) else ""
-                self.graphs_reason = f"capture of a {n}-record training step failed: {type(exc).__name__}: {first}"
+                self.graphs_reason = (f"capture of a {n}-record training step failed: {type(exc).__name__}: "
+                                      f"{failure_line(exc)}")
                 warnings.warn(f"nrc: {self.graphs_reason}; training without CUDA graphs", stacklevel=3)
                 return self.network
         return self._graphs[n]
 
-    def _loss(self, raw: Tensor, targets: Tensor) -> Tensor:
-        return relative_l2_luminance(self.network(raw), targets, self.settings.target_clamp)
+    def _loss(self, raw: Tensor, targets: Tensor, net: Any = None) -> Tensor:
+        """The loss of one training batch through ``net`` (default: the network)."""
+        return relative_l2_luminance((self.network if net is None else net)(raw), targets, self.settings.target_clamp)
 
     def _training_loss(self, raw: Tensor, targets: Tensor) -> Tensor:
         """The loss of one training batch, through ``torch.compile`` when asked (its backward is compiled with it:
@@ -196,9 +196,8 @@ class RadianceCache:
         if positions.shape[0] == 0:
             return 0.0
         raw = self._raw(positions, directions)
-        if self._graphs is not None and self.training_backend == "eager":  # renderer.cuda_graphs: through its graph
-            net = self._graphed_forward(raw)
-            loss = relative_l2_luminance(net(raw), targets.to(self.device), self.settings.target_clamp)
+        if self._graphs is not None and self.graphs_reason is None:  # renderer.cuda_graphs: through its graph
+            loss = self._loss(raw, targets.to(self.device), self._graphed_forward(raw))
         else:
             loss = self._training_loss(raw, targets.to(self.device))
         self.optimizer.zero_grad(set_to_none=True)

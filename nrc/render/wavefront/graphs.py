@@ -17,8 +17,8 @@ captured by address, so a call with other tensors (another scene on the same mac
 
 Capture: warm-up calls on a side stream (the first compiles, Inductor and Dynamo settle), then the capture into a
 pool shared by the machine's graphs (they never run concurrently). A capture that fails (an op that
-synchronises, say) turns graphs off for the machine and says why (:attr:`StepGraphs.reason`); the calls run as
-without them. Memory: per captured bucket, the static inputs and outputs (``2 x (n_float + n_int rows) x B``
+synchronises, say) turns graphs off for the machine and says why (:attr:`StepGraphs.reason`); the machine then
+runs its calls as without them. Memory: per captured bucket, the static inputs and outputs (``2 x (n_float + n_int rows) x B``
 elements, 4 / 8 bytes) and what the step allocates inside the graph's pool.
 
 ``capture`` is a parameter so that the bookkeeping (buckets, padding, static buffers, recapture) runs without a
@@ -35,6 +35,8 @@ from typing import Any
 
 import torch
 from torch import Tensor
+
+from nrc.errors import failure_line
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +94,8 @@ class _Graph:
 
 class StepGraphs:
     """The graphs of one machine: ``run(name, fn, F, I, inputs)`` is ``fn(F, I, P, density, majorant)`` for the
-    state ``F`` ``(n_float, S)``, ``I`` ``(n_int, S)`` through bucket ``bucket(S)``'s graph of ``name``.
+    state ``F`` ``(n_float, S)``, ``I`` ``(n_int, S)`` through bucket ``bucket(S)``'s graph of ``name``, or
+    ``None`` when that graph's capture failed (graphs are then off: the caller runs the step itself).
 
     Attributes:
         captures: graphs captured so far (a bucket captured again for another scene counts again).
@@ -111,7 +114,7 @@ class StepGraphs:
     def on(self) -> bool:
         return self.reason is None
 
-    def run(self, name: str, fn: Step, F: Tensor, I: Tensor, inputs: Any) -> tuple[Tensor, Tensor]:
+    def run(self, name: str, fn: Step, F: Tensor, I: Tensor, inputs: Any) -> tuple[Tensor, Tensor] | None:
         S = F.shape[1]
         B = bucket(S)
         scene = (inputs.density.data_ptr(), inputs.density.numel(), inputs.majorant.data_ptr(),
@@ -120,8 +123,8 @@ class StepGraphs:
         if g is None or g.scene != scene:
             self._graphs.pop((name, B), None)
             g = self._new(fn, B, inputs, scene)
-            if g is None:  # the capture failed: no graphs from here on
-                return fn(F, I, inputs.P, inputs.density, inputs.majorant)
+            if g is None:  # the capture failed: no graphs from here on, the caller runs the step itself
+                return None
             self._graphs[(name, B)] = g
         g.F[:, :S].copy_(F)
         g.I[:, :S].copy_(I)
@@ -140,8 +143,7 @@ class StepGraphs:
         try:
             replay, out = self._capture(fn, (F, I, P, inputs.density, inputs.majorant), self._pool)
         except Exception as exc:  # noqa: BLE001 -- an op that cannot be captured: run without graphs
-            first = str(exc).splitlines()[0][:200] if str(exc) else ""
-            self.reason = f"capture of a {B}-slot step failed: {type(exc).__name__}: {first}"
+            self.reason = f"capture of a {B}-slot step failed: {type(exc).__name__}: {failure_line(exc)}"
             self._graphs.clear()
             log.warning("renderer.cuda_graphs: %s; running the step without graphs", self.reason)
             return None

@@ -30,6 +30,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from nrc.errors import failure_line
 from nrc.render.compile_cache import default_inductor_cache, inductor_cache_dir, package_sources
 from nrc.render.wavefront.graphs import StepGraphs
 from nrc.render.wavefront.row_views import plain_row_views
@@ -100,13 +101,6 @@ def packages_cached(step: Transport, steps_per_call: int, device: torch.device) 
     """All AOT packages of this structure are in the cache: a compile is a load of milliseconds."""
     paths = aot_packages(step, steps_per_call, device)
     return paths is not None and all(p.is_file() for p in paths)
-
-
-def failure_line(exc: BaseException) -> str:
-    """The first line of an exception's message (at most 200 characters; empty when it has none): a compile
-    failure reported in one line."""
-    text = str(exc)
-    return text.splitlines()[0][:200] if text else ""
 
 
 def compiled_graphs() -> int:
@@ -352,7 +346,9 @@ class Machine:
 
     def _run(self, name: str, fn: Any, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
         if self.graphs is not None and self.graphs.on and self.startup_s is not None:  # graphs after the warm-up
-            return self.graphs.run(name, fn, F, I, inputs)
+            out = self.graphs.run(name, fn, F, I, inputs)
+            if out is not None:  # None: the capture failed, graphs are off from here on
+                return out
         return self._call(fn, F, I, inputs)
 
     def track(self, F: Tensor, I: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:

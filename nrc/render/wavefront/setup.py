@@ -17,10 +17,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from nrc.errors import ConfigError
+from nrc.errors import ConfigError, failure_line
 from nrc.render.wavefront.driver import EquiangularQueue, ShadowQueue
-from nrc.render.wavefront.machine import (Machine, SceneInputs, compiled_machine_ready, failure_line,
-                                          is_cached, machine_for, packages_cached)
+from nrc.render.wavefront.machine import (Machine, SceneInputs, compiled_machine_ready, is_cached, machine_for,
+                                          packages_cached)
 from nrc.render.wavefront.program import VertexProgram
 from nrc.render.wavefront.state import FLIGHT, Layout
 from nrc.render.wavefront.step import StepOptions, Transport, Uniforms
