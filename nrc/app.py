@@ -55,30 +55,28 @@ def ignored_settings(cfg: DictConfig) -> list[str]:
     return warnings
 
 
-def preflight(cfg: DictConfig) -> tuple[Any, str]:
+def preflight(cfg: DictConfig) -> tuple[Any, Any, str]:
     """Every value that can be checked before any work starts, in one place (one ``ConfigError`` / ``NRCError``
-    naming the key or file): ``frames``, ``device``, the display and denoise settings, the renderer's settings,
-    the NRC cache groups, and the files the run will read (the volume, environment maps, ``renderer.reference``
-    and ``renderer.resume``). The scene's own values are checked by ``load_scene`` as it builds them.
-    Returns the display settings and the denoiser, which the run uses."""
+    naming the key or file): ``frames``, ``device``, the display and denoise settings, the renderer's typed settings
+    (:func:`nrc.render.registry.renderer_settings`: for NRC also ``frames``, the batch filter, the transmittance
+    estimator and the cache groups), and the files the run will read (the volume, environment maps,
+    ``renderer.reference`` and ``renderer.resume``). The scene's own values are checked by ``load_scene`` as it
+    builds them. Returns what the run uses, each read once: the renderer's settings (their ``auto`` rules resolved
+    later, on the loaded scene), the display settings and the denoiser."""
     from nrc.config import ConfigReader
     from nrc.denoise import denoiser_from_config
     from nrc.errors import ConfigError
     from nrc.io.png import DisplaySettings
-    from nrc.render.radiance_caching.settings import app_checks
-    from nrc.render.registry import check_settings
+    from nrc.render.registry import renderer_settings
 
     ConfigReader({"frames": cfg.get("frames")}, "").get_int("frames", 30, lo=1)  # renderers other than nrc ignore it
     resolve_device(cfg.get("device", "cpu"))
-    display = DisplaySettings.from_config(cfg)
-    denoiser = denoiser_from_config(cfg)
     renderer = cfg.get("renderer")
     if not OmegaConf.is_dict(renderer):
         raise ConfigError(f"renderer must be a config block (renderer=pt|nrc|preview), got {renderer!r}")
-    name = renderer.get("name")
-    check_settings(name, renderer)
-    if name == "nrc":
-        app_checks(cfg)
+    settings = renderer_settings(renderer.get("name"), cfg)
+    display = getattr(settings, "display", None) or DisplaySettings.from_config(cfg)  # NRC's settings hold it
+    denoiser = denoiser_from_config(cfg)
     files = []
     scene = cfg.get("scene")
     vol = scene.get("volume") if OmegaConf.is_dict(scene) else None
@@ -96,7 +94,7 @@ def preflight(cfg: DictConfig) -> tuple[Any, str]:
         if not Path(path).is_file():
             what = "no such file" if not Path(path).exists() else "not a file"
             raise ConfigError(f"{key}={path}: {what}")
-    return display, denoiser
+    return settings, display, denoiser
 
 
 def _write(what: str, path: Path, write: Any) -> None:
@@ -133,13 +131,14 @@ class Outcome:
 
 
 def prepare(cfg: DictConfig, out_dir: Path | None) -> Job:
-    """Check the config (:func:`preflight`), set the threads (``threads``), load the scene and build the renderer;
-    with ``out_dir`` the renderer writes its logs and checkpoints there."""
+    """Check the config and read the settings once (:func:`preflight`), set the threads (``threads``), load the
+    scene, resolve the settings' ``auto`` rules on it and build the renderer from them; with ``out_dir`` the
+    renderer writes its logs and checkpoints there."""
     from nrc.config import apply_threads
-    from nrc.render.registry import make_renderer
+    from nrc.render.registry import build_renderer, resolve_settings
     from nrc.scene import load_scene
 
-    display, denoiser = preflight(cfg)
+    settings, display, denoiser = preflight(cfg)
     threads = apply_threads(cfg.get("threads", "auto"))
     for warning in ignored_settings(cfg):
         log.warning(warning)
@@ -154,7 +153,7 @@ def prepare(cfg: DictConfig, out_dir: Path | None) -> Job:
     device = resolve_device(cfg.device)
     scene = load_scene(cfg.scene, device)
     t_load = time.perf_counter() - t0
-    renderer = make_renderer(cfg.renderer.name, scene, cfg)
+    renderer = build_renderer(cfg.renderer.name, scene, resolve_settings(settings, scene))
     if out_dir is not None and hasattr(renderer, "attach_output"):  # logs and checkpoints (nrc) go to the run dir
         renderer.attach_output(out_dir)
     return Job(cfg, scene, renderer, display, denoiser, out_dir, threads, t_load)
@@ -162,7 +161,8 @@ def prepare(cfg: DictConfig, out_dir: Path | None) -> Job:
 
 def finish(job: Job, result: Any) -> Outcome:
     """The metrics and the denoised image of a render, and (with ``job.out_dir``) the outputs written."""
-    from nrc.evaluation.reference import config_hash, medium_alpha
+    from nrc.config import config_hash
+    from nrc.render.preview import medium_alpha
     from nrc.io import write_exr, write_png
 
     from nrc.denoise import clamp_bias, denoise, oidn_version

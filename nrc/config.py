@@ -8,11 +8,17 @@ app config, file paths and the device.
 * :func:`compose` -- the resolved app config for a list of overrides, as ``python -m nrc`` sees it (every
   script composes through it); :func:`absolute_paths` resolves the config's file paths against the launch
   directory; :func:`resolve_device` checks ``device``.
+* :func:`preset` -- the overrides of a scene type (:data:`PRESETS`, the files of ``conf/scene/``);
+  :func:`config_hash` / :func:`scene_hash` -- what a reference (and a render's metrics) is keyed by.
 """
 
 from __future__ import annotations
 
+import copy
+import hashlib
+import json
 import math
+import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -31,6 +37,19 @@ def _conf_dir() -> str:
 CONF_DIR = _conf_dir()
 
 _REQUIRED = object()
+
+# The scene types (``preset("side_lit")`` is ``scene=side_lit``): the files of conf/scene/ (the Disney cloud's ones
+# read ../shared/data relative to the working directory); ``none`` adds nothing.
+PRESETS: tuple[str, ...] = (*sorted(p.stem for p in (Path(CONF_DIR) / "scene").glob("*.yaml") if p.stem != "base"),
+                            "none")
+PRESET_SIZES = {"lantern": ["scene.camera.width=80", "scene.camera.height=45"]}  # the size its runs were measured at
+
+
+def preset(name: str) -> list[str]:
+    """The overrides of the scene type ``name`` (one of :data:`PRESETS`)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown scene type {name!r}: one of {', '.join(PRESETS)}")
+    return [] if name == "none" else [f"scene={name}", *PRESET_SIZES.get(name, [])]
 
 
 def to_plain(cfg: Any) -> Any:
@@ -231,6 +250,40 @@ def absolute_paths(cfg: Any) -> None:
             renderer[key] = absolute(renderer[key])
 
 
+HASHED_SECTIONS = ("scene", "renderer", "transmittance")
+CHUNKED_KEYS = ("spp", "seed")  # scene.integrator keys that chunking a reference changes: not hashed
+
+
+def config_hash(cfg: Any) -> str:
+    """sha256 (hex) of the resolved ``scene``, ``renderer`` and ``transmittance`` sections.
+
+    ``scene.integrator.spp`` and ``scene.integrator.seed`` are excluded (chunking changes them); keys are
+    sorted, so the hash depends on values only, not on the order of overrides.
+    """
+    sections = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in HASHED_SECTIONS if k in cfg}
+    sections = copy.deepcopy(sections)
+    for key in CHUNKED_KEYS:
+        sections["scene"].get("integrator", {}).pop(key, None)
+    text = json.dumps(sections, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def scene_hash(cfg: Any) -> str:
+    """sha256 (hex) of the resolved ``scene`` section alone, without ``integrator.spp`` and ``integrator.seed``.
+
+    Every unbiased estimator (any ``pt`` backend, any unbiased transmittance estimator) converges to the
+    same image, so a reference is valid for every config with the same scene hash.
+    """
+    scene = copy.deepcopy(OmegaConf.to_container(cfg.scene, resolve=True))
+    for key in CHUNKED_KEYS:
+        scene.get("integrator", {}).pop(key, None)
+    # file paths: one spelling per file ("/a/b/../c" and "/a/c" are the same volume)
+    for item in [scene.get("volume") or {}, *(scene.get("lights") or [])]:
+        if item.get("path"):
+            item["path"] = os.path.realpath(item["path"])
+    return hashlib.sha256(json.dumps(scene, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
 def resolve_device(name: str) -> Any:
     """``cpu``, ``cuda`` or ``cuda:N`` as a ``torch.device``; a clear error when CUDA is asked for and absent."""
     import torch
@@ -246,7 +299,8 @@ def resolve_device(name: str) -> Any:
 
 
 def code_version() -> str:
-    """``nrc <version> (<git rev>[+dirty])`` of the code running (``git`` only when run from a checkout)."""
+    """``nrc <version> (<git rev>[+dirty])`` of the code running (the git revision only when the package's own
+    files are tracked by git: an editable install of a checkout, never a wheel)."""
     import subprocess
     from importlib.metadata import PackageNotFoundError, version
 
@@ -254,18 +308,19 @@ def code_version() -> str:
         pkg = version("nrc")
     except PackageNotFoundError:  # pragma: no cover - running from a plain checkout
         pkg = "unknown"
-    repo = Path(__file__).resolve().parent.parent
-    if not (repo / ".git").exists():
-        return f"nrc {pkg}"
+    here = str(Path(__file__).resolve().parent)
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", here, *args], capture_output=True, text=True, check=True,
+                              timeout=10).stdout.strip()
+
     try:
-        rev = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True,
-                             text=True, check=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, check=True, timeout=10).stdout.strip()
+        git("ls-files", "--error-unmatch", "config.py")  # this file is in a git work tree: a checkout
+        rev = git("rev-parse", "--short", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return f"nrc {pkg}"
     return f"nrc {pkg} ({rev}{'+dirty' if dirty else ''})"
-
 
 
 THREADS_ENV = "NRC_THREADS"  # the threads a sweep's launcher grants each job (set by nrc.app.SweepSetup)

@@ -10,12 +10,16 @@ Each job renders its chunk range into ``<out>.parts/`` (resumable: run a killed 
 ``reference.merge=auto`` a single run merges when every chunk is there, and a multirun merges once its jobs are
 done (:class:`MergeAfterSweep`); ``reference.merge=only`` merges the parts found. Errors print one line naming
 what is wrong (a missing chunk names the ranges to render again) and exit with status 2.
+
+From Python, :func:`ensure_reference` is the same job in this process: the reference's path, rendered first when
+missing (what the measurement scripts call).
 """
 
 from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +27,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from nrc.config import CONF_DIR, ConfigReader, absolute_paths, apply_threads
 from nrc.errors import NRCError
@@ -95,6 +99,38 @@ def job(cfg: DictConfig, multirun: bool) -> None:
             if when == "only":
                 raise
             print(f"not merged yet: {exc}")
+
+
+def compose_reference(overrides: Sequence[str]) -> DictConfig:
+    """The reference job's config (``conf/reference.yaml``) with ``overrides``, as ``python -m nrc.reference_app``
+    sees it (outside a Hydra app)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name="reference", overrides=list(overrides))
+
+
+def ensure_reference(overrides: Sequence[str], spp: int, chunk_spp: int = 64, out: str | Path | None = None,
+                     progress: bool = False) -> Path:
+    """The path of the ``spp``-spp reference of the scene ``overrides`` (``out``, else the default path of
+    :func:`nrc.evaluation.reference.default_reference_path`), rendered here first when it is missing: the job of
+    ``python -m nrc.reference_app <overrides> scene.integrator.spp=<spp> reference.chunk_spp=<chunk_spp>`` in
+    this process (resumable: its part stays beside the EXR until the merge)."""
+    from nrc.evaluation.reference import _chunk_count
+    from nrc.evaluation.reference_parts import render_part
+
+    cfg = compose_reference([*overrides, f"scene.integrator.spp={int(spp)}",
+                             f"reference.chunk_spp={min(int(chunk_spp), int(spp))}"])
+    if out is not None:
+        with open_dict(cfg):
+            cfg.reference.out = str(out)
+    absolute_paths(cfg)
+    chunk, _, path, _, floor, _ = _settings(cfg)
+    if path.is_file():
+        return path
+    n_chunks = _chunk_count(chunk, int(spp))
+    render_part(cfg, path, chunk, int(spp), range(n_chunks), progress=progress, floor_target=floor)
+    return merge(cfg)
 
 
 @hydra.main(config_path=CONF_DIR, config_name="reference", version_base="1.3")

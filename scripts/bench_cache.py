@@ -9,7 +9,7 @@ for the position encodings T2, T12 (triangle wave, 2 / 12 frequencies), F12 (fre
 grid with 8 / 12 / 16 levels (F = 2, T = 2^19, N_min = 16, per-level scale 2: Spindler's grid), each
 with one-blob (4 bins) on the direction, times MLP width {64, 128} x hidden layers {3, 4, 5, 6}; plus
 the hash-grid encoding alone (forward + backward) for L = 8, 12, 16. Results go to stdout and to the
-``## Radiance cache throughput`` section of ``docs/benchmarks.md``.
+``## Radiance cache throughput`` section of ``docs/measurements/speed.md``.
 
     python scripts/bench_cache.py            # full table (~4 min on 2 cores)
     python scripts/bench_cache.py --quick    # width 64, depths 3 and 6, one timed call each
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parent.parent
+from lab import REPO
 
 from nrc.cache import build_radiance_cache  # noqa: E402
 from nrc.cache.allocator import retain_freed_memory  # noqa: E402
@@ -115,13 +115,9 @@ def _fmt(points_per_s: float) -> str:
 
 
 def _machine(device: str) -> str:
-    from nrc.evaluation.speed_vs_error import cpu_model
+    from lab.machine import machine
 
-    cpu = cpu_model()
-    gpu = f", GPU {torch.cuda.get_device_name()}" if device.startswith("cuda") else ""
-    return (f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__} (intra-op threads: "
-            f"{torch.get_num_threads()}){gpu}, "
-            f"Python {platform.python_version()}")
+    return f"{machine(device)}, Python {platform.python_version()}"
 
 
 def run(widths: list[int], depths: list[int], reps: int, device: str, command: str) -> str:
@@ -202,7 +198,7 @@ def main() -> None:
     parser.add_argument("--reps", type=int, default=5, help="timed calls per configuration (full run)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
-    parser.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
+    parser.add_argument("--no-write", action="store_true", help="print only; leave docs/measurements/speed.md alone")
     parser.add_argument("--markdown", type=Path, help="also write the section to this file")
     args = parser.parse_args()
     if args.threads is not None:
@@ -213,7 +209,7 @@ def main() -> None:
     command = " ".join(["python scripts/bench_cache.py", *sys.argv[1:]])
     section = run(widths, depths, reps, args.device, command)
     if not args.no_write:
-        write_section(section, REPO / "docs" / "benchmarks.md")
+        write_section(section, REPO / "docs" / "measurements" / "speed.md")
     if args.markdown is not None:
         args.markdown.write_text(section)
     print("\n" + section)

@@ -30,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from lab import REPO
 
 MITSUBA = r"""
 import sys, time

@@ -1,4 +1,4 @@
-"""An NRC frame against a path-traced 1-spp frame, both from this commit in the same minutes (docs/benchmarks.md,
+"""An NRC frame against a path-traced 1-spp frame, both from this commit in the same minutes (docs/measurements/nrc_frames.md,
 "Frames bounded by work").
 
 Renders ``--frames`` NRC frames (``scene.integrator.spp=1`` a frame) of a scene type and ``--pt-repeats`` path-traced
@@ -7,7 +7,7 @@ Renders ``--frames`` NRC frames (``scene.integrator.spp=1`` a frame) of a scene 
 train split (train: what the frame waited for; its steps' own time apart, run beside the next frame's trace with
 ``renderer.training.overlap``), the step calls per frame, the milliseconds per call, the scattering events per frame
 and the trace's cost per event. Start-up (compile or cache load) is reported apart, with the whole process's time. Not a test: speed
-lives here and in docs/benchmarks.md.
+lives here and in docs/measurements/nrc_frames.md.
 
     python scripts/bench_frames.py [--preset thick] [--width 160 --height 90] [--backend compiled] [--device cpu]
                                    [--frames 13] [--skip 3] [--pt-repeats 10] [--threads 2] [--json out.json]
@@ -26,12 +26,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nrc.config import absolute_paths, compose
-from nrc.render.pt import PathTracer
-from nrc.render.radiance_caching import NRCRenderer
-from nrc.scene import load_scene
+from lab import REPO
+from lab.render import renderer
 
-REPO = Path(__file__).resolve().parents[1]
 VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"  # ../shared/data/ from the repo root
 
 
@@ -81,9 +78,8 @@ def main() -> None:
     machine_log.setLevel(logging.INFO)
 
     t0 = time.perf_counter()
-    cfg = compose(["renderer=nrc", *scene, f"frames={args.frames}", "renderer.log.tensorboard=false", *args.nrc])
-    absolute_paths(cfg)
-    nrc = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg)
+    nrc = renderer(["renderer=nrc", *scene, f"frames={args.frames}", "renderer.log.tensorboard=false", *args.nrc],
+                   absolute=True)
     result = nrc.render()
     nrc_process = time.perf_counter() - t0
     h = result.metrics["history"]
@@ -108,9 +104,7 @@ def main() -> None:
     t0 = time.perf_counter()
     runs = []
     for r in range(args.pt_repeats + 1):  # the first loads (or builds) the compiled step
-        cfg = compose(["renderer=pt", *scene, f"scene.integrator.seed={r + 1}"])
-        absolute_paths(cfg)
-        runs.append(PathTracer(load_scene(cfg.scene, cfg.device), cfg).render().metrics)
+        runs.append(renderer(["renderer=pt", *scene, f"scene.integrator.seed={r + 1}"], absolute=True).render().metrics)
     pt_process = time.perf_counter() - t0
     m = runs[1:] if len(runs) > 1 else runs
     out_pt = {

@@ -24,19 +24,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
-REPO = Path(__file__).resolve().parent.parent
+from lab import REPO
+from lab.machine import machine
+from lab.render import setup
 
-from nrc.config import code_version, compose  # noqa: E402
-from nrc.render.pt import PathTracer  # noqa: E402
-from nrc.scene import load_scene  # noqa: E402
+from nrc.config import code_version  # noqa: E402
 from nrc.volume.procedural import clear_pocket  # noqa: E402
 
 LANTERN = (5.0, -20.0, 10.0)  # conf/scene/lantern.yaml
@@ -60,7 +58,7 @@ def pocket_overrides(out: Path) -> list[str]:
     path = REPO / "outputs" / "lantern_pocket.npz"
     path.parent.mkdir(parents=True, exist_ok=True)
     if not path.is_file():
-        grid = load_scene(compose(["scene=lantern"]).scene).grid
+        grid = setup(["scene=lantern"]).scene.grid
         np.savez(path, density=clear_pocket(grid, LANTERN, 4.0).numpy())
     return ["scene.volume.source=npz", f"scene.volume.path={path}"]
 
@@ -74,10 +72,9 @@ def run_scene(name: str, args, out: Path) -> dict:
     for mode, ov in modes.items():
         ims, t = [], []
         for seed in range(args.seeds):
-            cfg = compose([*base, *ov, f"scene.integrator.seed={1000 + seed}"])
-            scene = load_scene(cfg.scene, cfg.device)  # not timed: the same cloud for every mode
+            run = setup([*base, *ov, f"scene.integrator.seed={1000 + seed}"])  # not timed: the same cloud for every mode
             t0 = time.perf_counter()
-            ims.append(PathTracer(scene, cfg).render().image.mean(-1))
+            ims.append(run.renderer().render().image.mean(-1))
             t.append(time.perf_counter() - t0)
         renders[mode], seconds[mode] = np.stack(ims), float(np.median(t))
         if not args.quiet:
@@ -132,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     res = {n: run_scene(n, args, args.out) for n in names}
     meta = {"width": args.width, "height": args.height, "spp": args.spp, "seeds": args.seeds, "backend": args.backend,
-            "machine": f"{platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}",
+            "machine": machine(),
             "git": code_version(), "wall_s": time.perf_counter() - t0, "argv": sys.argv[1:]}
     for r in res.values():  # paths relative to the checkout
         r["overrides"] = [o.replace(str(REPO) + "/", "") for o in r["overrides"]]

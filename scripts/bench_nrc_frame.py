@@ -3,7 +3,7 @@
 Renders ``--frames`` frames of ``renderer=nrc`` (today's defaults: 1 spp, 128x128 training paths) at
 ``--width``x``--height`` and prints the median per-frame stage times of the frames after ``--skip`` warm-up
 frames, with the process's start-up (compile or cache load) reported apart. Not a test: speed lives here and
-in docs/benchmarks.md.
+in docs/measurements/speed.md.
 
     python scripts/bench_nrc_frame.py [--backend eager|compiled|auto] [--frames 12] [--threads 2] [--json out.json]
 """
@@ -16,13 +16,10 @@ import statistics
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+import torch
 
-import torch  # noqa: E402
-
-from nrc.config import compose  # noqa: E402
-from nrc.render.radiance_caching import NRCRenderer  # noqa: E402
-from nrc.scene import load_scene  # noqa: E402
+from lab import REPO
+from lab.render import renderer as nrc_renderer
 
 VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"  # ../shared/data/ from the repo root
 
@@ -48,10 +45,9 @@ def main() -> None:
         ap.error(f"--frames ({args.frames}) must exceed --skip ({args.skip}): the medians are over the frames after it")
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    cfg = compose(["renderer=nrc", *side_lit(args.vdb), f"scene.camera.width={args.width}", f"scene.camera.height={args.height}",
-                   f"frames={args.frames}", f"renderer.backend={args.backend}", "renderer.log.tensorboard=false",
-                   *args.overrides])
-    renderer = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg)
+    renderer = nrc_renderer(["renderer=nrc", *side_lit(args.vdb), f"scene.camera.width={args.width}",
+                             f"scene.camera.height={args.height}", f"frames={args.frames}",
+                             f"renderer.backend={args.backend}", "renderer.log.tensorboard=false", *args.overrides])
     result = renderer.render()
     total = time.perf_counter() - t0
     h = result.metrics["history"]

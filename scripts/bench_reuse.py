@@ -40,7 +40,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
 import sys
 import time
 import zlib
@@ -49,25 +48,29 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parent.parent
+from lab import REPO
+from lab.machine import machine
+from lab.render import renderer, setup
 
-from nrc.config import code_version, compose  # noqa: E402
+from nrc.config import code_version  # noqa: E402
 from nrc.metrics import hdr_flip, medium_mask, rel_mse  # noqa: E402
-from nrc.evaluation.reference import medium_alpha  # noqa: E402
-from nrc.evaluation.speed_vs_error import preset  # noqa: E402
-from nrc.render.pt import PathTracer  # noqa: E402
-from nrc.scene import load_scene  # noqa: E402
+from nrc.render.preview import medium_alpha  # noqa: E402
+from nrc.config import preset  # noqa: E402
 
 MODES = ("none", "spatial", "spatiotemporal")
 COMMON = ["renderer=pt", "renderer.backend=eager", "renderer.light_selection=ris"]
 
 
 def render(overrides: list[str], on_pass=None):
-    cfg = compose(overrides)
-    scene = load_scene(cfg.scene, cfg.device)
+    run = setup(overrides)
     t0 = time.perf_counter()
-    res = PathTracer(scene, cfg).render(on_pass=on_pass)
-    return res, time.perf_counter() - t0, scene
+    res = run.renderer().render(on_pass=on_pass)
+    return res, time.perf_counter() - t0, run.scene
+
+
+def medium(overrides: list[str]) -> np.ndarray:
+    """The medium pixels (:func:`nrc.metrics.medium_mask`) of the scene ``overrides`` configure."""
+    return medium_mask(medium_alpha(setup(overrides).scene))
 
 
 def score(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float]:
@@ -102,8 +105,7 @@ def nrc_overrides(name: str, args, extra=(), defaults=()) -> list[str]:
 def bench_scene(name: str, args, log) -> dict:
     base = [*preset(name), *COMMON, *args.extra]
     ref = reference(name, base, args, log)
-    cfg = compose(base)
-    mask = medium_mask(medium_alpha(load_scene(cfg.scene, cfg.device)))
+    mask = medium(base)
     out: dict = {"scene": name, "overrides": base, "modes": {}}
     for mode in MODES:
         frames, times = [], []
@@ -176,19 +178,16 @@ def bench_nrc(name: str, args, log) -> dict:
     frames after ``--nrc-warmup``; the frames' relative variance over time (per pixel, over the mean image
     squared + 0.01, medium pixels: the noise, with the cache's drift); gains against ``none`` per frame and at
     equal time (raw relMSE and variance scaled by the seconds per frame)."""
-    from nrc.render.radiance_caching import NRCRenderer
 
     base = nrc_overrides(name, args)
     ref = np.load(args.out / f"ref_{name}_{args.ref_spp}.npy")
-    cfg = compose(base)
-    mask = medium_mask(medium_alpha(load_scene(cfg.scene, cfg.device)))
+    mask = medium(base)
     shared = str(REPO.parent / "shared")  # recorded as ../shared (relative to the repo), not this machine's path
     out: dict = {"scene": name, "renderer": "nrc", "overrides": [o.replace(shared, "../shared") for o in base],
                  "variants": {m: NRC_VARIANTS[m] for m in args.nrc_variants.split(",")}, "modes": {}}
     for mode in args.nrc_variants.split(","):
-        cfg = compose([*base, *NRC_VARIANTS[mode]])
         frames = []
-        res = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg).render(on_frame=lambda f, img, o, st: frames.append(img))
+        res = renderer([*base, *NRC_VARIANTS[mode]]).render(on_frame=lambda f, img, o, st: frames.append(img))
         kept = np.stack(frames[args.nrc_warmup:])
         row = mean_score(kept, ref, mask)
         row["rel_var_frames"] = float((kept.var(0, ddof=1) / (kept.mean(0) ** 2 + 0.01))[mask].mean())
@@ -224,10 +223,10 @@ def decompose_scene(spec: str, args, log) -> dict:
 
     name, extra = parse_spec(spec)
     passes = args.frames
-    cfg = compose([*preset(name), *COMMON, *args.extra, *extra, "renderer.reuse.mode=spatial",
-                   f"scene.integrator.spp={passes}", "scene.integrator.seed=1"])
-    scene = load_scene(cfg.scene, cfg.device)
-    pt = PathTracer(scene, cfg)
+    run = setup([*preset(name), *COMMON, *args.extra, *extra, "renderer.reuse.mode=spatial",
+                 f"scene.integrator.spp={passes}", "scene.integrator.seed=1"])
+    scene = run.scene
+    pt = run.renderer()
     mask = medium_mask(medium_alpha(scene)).reshape(-1)
     cam, n, st = scene.camera, scene.camera.num_pixels, pt.settings
     gen = torch.Generator(device=pt.device).manual_seed(7)
@@ -242,7 +241,7 @@ def decompose_scene(spec: str, args, log) -> dict:
         rec = VertexRecord.empty(n, st.reuse.vertex(scene.g), scene.albedo, pt.device)
         one = torch.zeros(n, 3, device=pt.device)
         t0 = time.perf_counter()
-        pt._wavefront(machine, gen, rec).run(n, lambda r, j=j: pt._camera_paths(r * passes + j), one)
+        pt.trace_pass(machine, gen, rec, j, passes, one)
         t1 = time.perf_counter()
         parts["B"].append(own.shade(own.initial(rec, pt.lights, gen), rec, pt.lights, *shade_args).cpu().numpy())
         secs["trace"] += t1 - t0
@@ -323,14 +322,13 @@ def decompose_nrc(name: str, args, log) -> dict:
     render paths and the cache), to which the vertices' own-RIS direct light (``none``) or the reused one is
     added: the frames of both estimators on the same cache, scored against the reference (relMSE, the image mean,
     the same after OIDN) and by their variance over the frames (which includes the cache's drift)."""
-    from nrc.render.radiance_caching import NRCRenderer
 
     pt_base = [*preset(name), *COMMON, *args.extra]
     ref = reference(name, pt_base, args, log)
-    cfg = compose(nrc_overrides(name, args, defaults=["renderer.reuse.mode=spatiotemporal"]))
-    scene = load_scene(cfg.scene, cfg.device)
+    run = setup(nrc_overrides(name, args, defaults=["renderer.reuse.mode=spatiotemporal"]))
+    scene = run.scene
     mask = medium_mask(medium_alpha(scene))
-    r = NRCRenderer(scene, cfg)
+    r = run.renderer()
     rec = r.reuse = _RecordingReuse(r.reuse, r.device)
     images, times, t_reuse = [], [], []
 
@@ -387,7 +385,6 @@ def oracle_nrc(spec: str, args, log) -> dict:
     plus the mean over the scored frames of both estimates of ``I`` (a noiseless ``I`` up to ``1/(2 frames)``
     of its variance) at no cost, which no reuse of the distance domain can beat. Equal time: raw relMSE scaled
     by the seconds per frame (the oracle's are the reuse run's without its reuse pass)."""
-    from nrc.render.radiance_caching import NRCRenderer
 
     name, extra = parse_spec(spec)
     # the reference depends on the scene only: the spec's scene.* overrides go into it (and its file name)
@@ -396,13 +393,12 @@ def oracle_nrc(spec: str, args, log) -> dict:
     ref = reference(tag, [*preset(name), *COMMON, *args.extra, *scene_extra], args, log)
     base = nrc_overrides(name, args, extra)
     w = args.nrc_warmup
-    scene = load_scene(compose(base).scene)
+    scene = setup(base).scene
     mask = medium_mask(medium_alpha(scene))
     hw = (scene.camera.height, scene.camera.width, 3)
     runs = {}
     for variant in ("none", ORACLE_REUSE):
-        cfg = compose([*base, *NRC_VARIANTS[variant]])
-        r = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg)
+        r = renderer([*base, *NRC_VARIANTS[variant]])
         rec = r.reuse = _RecordingReuse(r.reuse, r.device) if r.reuse is not None else None
         images: list[np.ndarray] = []
         res = r.render(on_frame=lambda f, img, o, st: images.append(np.asarray(img).reshape(-1, 3).copy()))
@@ -572,7 +568,7 @@ def main() -> int:
 
     meta = {"frames": args.frames, "warmup": args.warmup, "nrc_frames": args.nrc_frames,
             "nrc_warmup": args.nrc_warmup, "ref_spp": args.ref_spp, "extra": args.extra, "code": code_version(),
-            "torch": torch.__version__, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads"}
+            "torch": torch.__version__, "machine": machine()}
     if args.oracle_nrc:
         results = [oracle_nrc(s, args, log) for s in args.oracle_nrc.split(";") if s]
         (args.out / "oracle.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))

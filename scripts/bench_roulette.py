@@ -20,11 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nrc.config import absolute_paths, compose
+from lab.render import setup
 from nrc.metrics import mean_ratio, medium_mask, rel_mse, relative_variance
 from nrc.evaluation.reference import read_reference
-from nrc.render.pt import PathTracer
-from nrc.scene import load_scene
 from nrc.volume.optical_depth import camera_optical_depths
 
 
@@ -50,16 +48,15 @@ def main(argv: list[str] | None = None) -> int:
     for name, ovs in variants.items():
         imgs, times, scat = [], [], []
         for seed in range(args.seeds):
-            cfg = compose(["renderer=pt", "renderer.backend=compiled", *overrides, *ovs,
-                           f"scene.integrator.spp={args.spp}", f"scene.integrator.seed={100 + seed}"])
-            absolute_paths(cfg)
-            r = PathTracer(load_scene(cfg.scene, cfg.device), cfg).render()
+            run = setup(["renderer=pt", "renderer.backend=compiled", *overrides, *ovs,
+                         f"scene.integrator.spp={args.spp}", f"scene.integrator.seed={100 + seed}"], absolute=True)
+            r = run.renderer().render()
             imgs.append(r.image.astype(np.float64))
             times.append(r.metrics["time_render_s"])
             scat.append(r.metrics["scatter_events"] / r.metrics["samples"])
         if ref is None:  # the 'off' renders' mean stands in for the reference (runs first)
             ref = type("Ref", (), {"image": np.mean(imgs, axis=0)})()
-            scene = load_scene(cfg.scene, cfg.device)
+            scene = run.scene
             mask = (camera_optical_depths(scene.camera, scene.grid) > 0).reshape(
                 scene.camera.height, scene.camera.width).numpy()
         renders[name] = imgs

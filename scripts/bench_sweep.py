@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from lab import REPO
 
 
 def sweep(args: list[str], env: dict[str, str], out: Path) -> tuple[float, list[dict]]:

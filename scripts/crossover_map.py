@@ -23,7 +23,7 @@ on one machine with nothing else running): ``local`` runs them one after another
 one job per point on a node of its own (``--exclusive``; ``--slurm partition=cpu --slurm cpus_per_task=32
 --slurm timeout_min=120``). Each summary records its node, machine type and threads; the map is built from the
 summaries once every job is done, and refuses to mix machine types. The references are rendered first
-(``python -m nrc.reference_app``, docs/references.md): a job never renders one.
+(``python -m nrc.reference_app``, docs/running.md): a job never renders one.
 """
 
 from __future__ import annotations
@@ -36,9 +36,8 @@ import sys
 import time
 from pathlib import Path
 
-from nrc.evaluation.jobs import check_one_machine_type, run_commands
-
-REPO = Path(__file__).resolve().parents[1]
+from lab import REPO
+from lab.jobs import check_one_machine_type, run_commands
 VDB = "../shared/data/wdas_cloud_sixteenth.vdb"  # relative to the repo root, where everything runs (results name no machine path)
 # name -> (scene overrides on top of the thick preset, reference spp)
 POINTS: dict[str, tuple[list[str], int]] = {
@@ -88,7 +87,7 @@ def run_jobs(todo: dict[str, list[str]], scenes: dict[str, tuple[list[str], int]
         if not ref.is_file():
             raise SystemExit(f"crossover_map: point {name} has no reference {os.path.relpath(ref, REPO)}: render it "
                              f"first, e.g. python -m nrc.reference_app {' '.join(scene)} "
-                             f"scene.integrator.spp={ref_spp} (docs/references.md)")
+                             f"scene.integrator.spp={ref_spp} (docs/running.md)")
     run_commands(todo, args.jobs, args.out / ".jobs", REPO, args.slurm)
 
 

@@ -45,7 +45,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from lab import REPO
 
 # What a run needs besides torch (the project's base dependencies, read from the installed metadata when present)
 # and what the checks themselves need; torch is never installed by this script.

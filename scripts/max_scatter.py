@@ -21,9 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nrc.config import absolute_paths, compose
-from nrc.render.pt import PathTracer
-from nrc.scene import load_scene
+from lab.render import setup
 from nrc.volume.optical_depth import camera_optical_depths
 
 
@@ -41,14 +39,14 @@ def main(argv: list[str] | None = None) -> int:
     rows, images = [], {}
     mask = None
     for limit in limits:
-        cfg = compose(["renderer=pt", "renderer.backend=compiled", *overrides, f"scene.integrator.max_scatter={limit}"])
-        absolute_paths(cfg)
-        scene = load_scene(cfg.scene, cfg.device)
+        run = setup(["renderer=pt", "renderer.backend=compiled", *overrides, f"scene.integrator.max_scatter={limit}"],
+                    absolute=True)
+        scene = run.scene
         if mask is None:
             tau = camera_optical_depths(scene.camera, scene.grid).reshape(scene.camera.height, scene.camera.width)
             mask = tau.numpy() > 0
         t0 = time.perf_counter()
-        r = PathTracer(scene, cfg).render()
+        r = run.renderer().render()
         images[limit] = r.image.astype(np.float64)
         rows.append({"max_scatter": limit, "time_render_s": r.metrics["time_render_s"],
                      "time_total_s": time.perf_counter() - t0,

@@ -10,7 +10,7 @@ frame unless ``scene.integrator.spp`` is given -- plus the variant's Hydra overr
 it prints and records the frame's relMSE over the medium pixels, raw and denoised (pyoidn), its image mean over
 the reference's (medium pixels), and the wall time since the renderer started (start-up and compilation
 included). The reference must come from the disjoint seed stream (``scripts/render_reference.py``).
-docs/nrc_measurements.md ("Defaults by measurement", "Thick clouds" and "Training budget on small images") shows
+docs/measurements/nrc_defaults.md ("Defaults by measurement", "Thick clouds" and "Training budget on small images") shows
 what it measured.
 """
 
@@ -21,14 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-
-from nrc.config import compose  # noqa: E402
+from lab.render import setup
 from nrc.denoise import denoise  # noqa: E402
 from nrc.metrics import mean_ratio, medium_mask, rel_mse  # noqa: E402
 from nrc.evaluation.reference import check_independent, read_reference  # noqa: E402
-from nrc.evaluation.speed_vs_error import PRESETS, preset  # noqa: E402
-from nrc.render.radiance_caching import NRCRenderer  # noqa: E402
-from nrc.scene import load_scene  # noqa: E402
+from nrc.config import PRESETS, preset  # noqa: E402
 
 MARKS = (10, 20, 30, 50, 75, 100, 150, 200, 300)
 SEED = 1001
@@ -50,15 +47,16 @@ def main(argv: list[str] | None = None) -> dict:
     out: dict[str, list[dict]] = {}
     for spec in args.variant:
         name, _, ovs = spec.partition("=")
-        cfg = compose(preset(args.preset) + scene + ["renderer=nrc", "renderer.log.tensorboard=false",
-                                                       "renderer.backend=compiled", f"frames={args.frames}",
-                                                       f"scene.integrator.seed={SEED}"]
-                      + [o for o in ovs.split(",") if o])
+        t0 = time.perf_counter()  # the scene's load, the renderer's start-up and its frames
+        run = setup(preset(args.preset) + scene + ["renderer=nrc", "renderer.log.tensorboard=false",
+                                                    "renderer.backend=compiled", f"frames={args.frames}",
+                                                    f"scene.integrator.seed={SEED}"]
+                    + [o for o in ovs.split(",") if o])
+        cfg = run.cfg
         if ref.image.shape != (cfg.scene.camera.height, cfg.scene.camera.width, 3):
             raise SystemExit(f"nrc_convergence: the reference is {ref.image.shape[:2]}, the scene "
                              f"{cfg.scene.camera.height}x{cfg.scene.camera.width}")
         rows: list[dict] = []
-        t0 = time.perf_counter()
 
         def on_frame(frame, image, accumulated, stats, rows=rows, t0=t0, name=name):
             if frame + 1 not in MARKS:
@@ -71,7 +69,7 @@ def main(argv: list[str] | None = None) -> dict:
                          "mean_ratio_medium": mean_ratio(img, ref.image, mask)})
             print(name, json.dumps(rows[-1]), flush=True)
 
-        NRCRenderer(load_scene(cfg.scene, cfg.device), cfg).render(progress=False, on_frame=on_frame)
+        run.renderer().render(progress=False, on_frame=on_frame)
         out[name] = rows
     if args.out is not None:
         args.out.write_text(json.dumps({"preset": args.preset, "scene": scene, "variants": args.variant,

@@ -14,17 +14,15 @@ from __future__ import annotations
 import argparse
 import sys
 
-from nrc.config import absolute_paths, compose
-from nrc.errors import NRCError
-from nrc.evaluation.speed_vs_error import PRESETS, preset
-from nrc.scene import load_scene
+from lab import exit_status
+from lab.render import setup
+from nrc.config import PRESETS, preset
 from nrc.volume.optical_depth import scene_optical_depth
 
 
 def row(name: str, overrides: list[str]) -> str:
-    cfg = compose(overrides)
-    absolute_paths(cfg)
-    scene = load_scene(cfg.scene, cfg.device)
+    run = setup(overrides, absolute=True)
+    cfg, scene = run.cfg, run.scene
     od = scene_optical_depth(scene)
     v = cfg.scene.volume
     src = "Disney" if v.source == "vdb" else v.procedural.kind if v.source == "procedural" else v.source
@@ -44,13 +42,12 @@ def main(argv: list[str] | None = None) -> int:
         jobs = [(f"scene={t}", preset(t)) for t in PRESETS if t != "none"]
     print("| scene | cloud | density scale | median tau | tau p10-p90 | median tau(1-g) | albedo | g | pixels seeing it |")
     print("|---|---|---|---|---|---|---|---|---|")
-    try:
+
+    def rows() -> None:
         for name, ovs in jobs:
             print(row(name, ovs), flush=True)
-    except NRCError as exc:
-        print(f"optical_depth: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+
+    return exit_status("optical_depth", rows)
 
 
 if __name__ == "__main__":

@@ -1,20 +1,18 @@
-"""Render a converged ``pt`` reference in resumable chunks (see :mod:`nrc.evaluation.reference`).
+"""Render a converged ``pt`` reference: a thin wrapper over the reference app (``python -m nrc.reference_app``,
+:func:`nrc.reference_app.ensure_reference`), kept for its short command line.
 
-Hydra overrides select the scene as for ``python -m nrc``; ``scene.integrator.spp`` is the total sample
-count and ``scene.integrator.seed`` the base seed, moved into the reference seed stream (>= 1e6, disjoint from
-every render's seeds: chunk ``i`` of seed ``s`` uses ``1e6 + s * 1e4 + i``). A killed run resumes
-from ``<out>.ckpt.npz`` when started again with the same arguments.
+Hydra overrides select the scene as for ``python -m nrc``; ``scene.integrator.spp`` is the total sample count and
+``scene.integrator.seed`` the base seed (moved into the reference stream, disjoint from every render's seeds). A
+killed run resumes from its part beside the EXR (``<out>.parts/``) when started again with the same arguments.
 
 Usage::
 
     python scripts/render_reference.py scene=sun scene.integrator.spp=4096 --chunk-spp 64 \\
         [--out data/references/sun.exr] [--no-progress]
 
-Without ``--out`` the reference goes to ``data/references/reference_<scene hash prefix>_<spp>spp.exr``
-(the name ``scripts/speed_vs_error.py`` looks for). The EXR's ``A`` channel is the medium alpha
-(``1 -`` camera-ray transmittance) and its header holds ``spp``, ``seed``, ``config_hash``, ``scene_hash``
-and ``rel_mse_floor`` (the relative MSE the reference's own noise adds to any comparison with it).
-A tqdm bar over chunks shows the elapsed time and the ETA.
+Without ``--out`` the reference goes to ``data/references/reference_<scene hash prefix>_<spp>spp.exr`` under
+``$NRC_REFERENCE_DIR`` or the working directory (the name ``scripts/speed_vs_error.py`` looks for). Several
+processes or cluster nodes: ``python -m nrc.reference_app -m ... reference.chunks=...`` (docs/running.md).
 """
 
 from __future__ import annotations
@@ -23,12 +21,9 @@ import argparse
 import sys
 from pathlib import Path
 
-
-REPO = Path(__file__).resolve().parent.parent
-
-from nrc.config import absolute_paths, compose  # noqa: E402
-from nrc.errors import NRCError  # noqa: E402
-from nrc.evaluation.reference import default_reference_path, read_reference, render_reference  # noqa: E402
+from lab import exit_status
+from nrc.config import compose
+from nrc.reference_app import ensure_reference
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,18 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="output EXR (default data/references/...)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args, overrides = parser.parse_known_args(argv)
-    cfg = compose(overrides)
-    try:
-        absolute_paths(cfg)
-        out = args.out or default_reference_path(cfg, int(cfg.scene.integrator.spp))
-        render_reference(cfg, out, args.chunk_spp, int(cfg.scene.integrator.spp), progress=not args.no_progress)
-    except NRCError as exc:
-        print(f"render_reference: error: {exc}", file=sys.stderr)
-        return 2
-    ref = read_reference(out)
-    print(f"wrote {out} (rel_mse_floor: all {ref.attrs['rel_mse_floor']:.3g}, "
-          f"medium {ref.attrs['rel_mse_floor_medium']:.3g})")
-    return 0
+    return exit_status("render_reference", lambda: ensure_reference(
+        overrides, int(compose(overrides).scene.integrator.spp), args.chunk_spp, args.out,
+        progress=not args.no_progress))
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
 from pathlib import Path
 
@@ -15,6 +16,10 @@ from nrc.volume.grid import DensityGrid
 
 REPO = Path(__file__).resolve().parent.parent
 CONF_DIR = REPO / "conf"
+# The lab's shared code (scripts/lab/) imports as `lab`, as it does for a script run as `python scripts/<tool>.py`
+# (scripts/ first on its path): tests may put scripts/ on the path, scripts never do.
+if str(REPO / "scripts") not in sys.path:
+    sys.path.append(str(REPO / "scripts"))
 SHARED_VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"
 
 # One intra-op thread per worker under pytest-xdist (two workers on two cores), else two.
@@ -145,5 +150,6 @@ def load_script(name: str):
 
     spec = importlib.util.spec_from_file_location(f"script_{name}", REPO / "scripts" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # what a dataclass in the script looks itself up by
     spec.loader.exec_module(module)
     return module

@@ -85,6 +85,35 @@ def test_leaving_the_frame_loop_stops_the_render():
     assert threading.active_count() == before  # the render thread has ended
 
 
+def test_frames_are_the_command_lines_frames(tmp_path):
+    """nrc.frames renders the command line's frames bitwise (the last one is image.exr) ..."""
+    frames = list(nrc.frames([*TINY, *NRC, "scene.integrator.seed=3"]))
+    image, metrics = command_line(tmp_path, *TINY, *NRC, "scene.integrator.seed=3")
+    np.testing.assert_array_equal(frames[-1].output, image)
+    assert [f.stats["loss"] for f in frames] == metrics["loss_per_frame"]
+
+
+def test_the_frame_loop_runs_in_the_consumers_thread(monkeypatch):
+    """... in the consumer's own thread, between its iterations: the settings that are per thread (grad mode, the
+    intra-op threads, glibc's arena, whose fresh mappings made a helper thread's frames slower) are the caller's, as
+    for ``python -m nrc``, and no thread is left behind."""
+    from nrc.render.radiance_caching import NRCRenderer
+
+    seen = []
+    render_frame = NRCRenderer.render_frame
+
+    def spy(self, frame):
+        seen.append((threading.get_ident(), torch.is_grad_enabled(), torch.get_num_threads()))
+        return render_frame(self, frame)
+
+    monkeypatch.setattr(NRCRenderer, "render_frame", spy)
+    before = threading.active_count()
+    for f in nrc.frames([*TINY, *NRC]):
+        assert threading.active_count() == before
+    me = (threading.get_ident(), torch.is_grad_enabled(), 1)
+    assert seen == [me, me]
+
+
 @pytest.mark.parametrize("overrides, message", [
     (["scene.nope=1"], "Could not override 'scene.nope'"),
     (["scene=nope"], "Could not find 'scene/nope'"),

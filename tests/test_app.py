@@ -1,6 +1,7 @@
 """The Hydra app end to end: outputs on success, one clear message (no traceback) on bad input."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -66,7 +67,7 @@ def test_default_scene_preview_shows_the_cloud(tmp_path):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["preview"]["tonemap"] == "aces" and metrics["preview"]["exposure"] > 0
     from nrc.config import compose
-    from nrc.evaluation.reference import medium_alpha
+    from nrc.render.preview import medium_alpha
     from nrc.scene import load_scene
 
     alpha = medium_alpha(load_scene(compose(["scene.camera.width=80", "scene.camera.height=45"]).scene))
@@ -148,6 +149,14 @@ def test_a_wheel_install_runs_outside_the_checkout(tmp_path):
     where = subprocess.run([str(py), "-c", "import nrc.config as c; print(c.CONF_DIR)"], cwd=work,
                            capture_output=True, text=True, timeout=60).stdout.strip()
     assert str(env_dir) in where  # the packaged configs, not the checkout's
+    # nothing locates the checkout: the default reference folder is under the working directory (not beside
+    # site-packages), and the code version names no git revision
+    env = {k: v for k, v in os.environ.items() if k != "NRC_REFERENCE_DIR"}
+    probe = ("from nrc.config import code_version, compose; from nrc.evaluation.reference import "
+             "default_reference_path; print(default_reference_path(compose([]), 8)); print(code_version())")
+    ref, version = subprocess.run([str(py), "-c", probe], cwd=work, env=env, capture_output=True, text=True,
+                                  timeout=120, check=True).stdout.strip().splitlines()[-2:]
+    assert Path(ref).parent == work / "data" / "references" and "(" not in version
 
 
 @pytest.mark.slow

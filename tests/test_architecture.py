@@ -1,4 +1,6 @@
-"""The package's layers (docs/architecture.md): imports only go down, and no script imports another script."""
+"""The package's layers (docs/architecture.md): imports only go down, and no script imports another script; the
+product (``nrc/``) and the lab (``scripts/``, its shared code in ``scripts/lab/``) stay apart: the product never imports
+the lab nor locates the checkout, and the lab uses only the product's public names."""
 
 from __future__ import annotations
 
@@ -58,14 +60,15 @@ def test_imports_only_go_down():
 
 def test_no_script_imports_another_script():
     scripts = {p.stem for p in (REPO / "scripts").glob("*.py")}
-    bad = [f"{p.name} imports {t}" for p in (REPO / "scripts").glob("*.py") for t in imports(p) if t in scripts]
+    bad = [f"{p.name} imports {t}" for p in (REPO / "scripts").rglob("*.py") for t in imports(p)
+           if t.split(".")[0] in scripts]
     assert not bad, bad
 
 
 def test_no_script_edits_sys_path():
     """Scripts import the installed package (``pip install -e .``), never the checkout through ``sys.path``."""
     bad = []
-    for p in sorted((REPO / "scripts").glob("*.py")):
+    for p in sorted((REPO / "scripts").rglob("*.py")):
         for node in ast.walk(ast.parse(p.read_text())):
             if isinstance(node, ast.Attribute) and node.attr == "path" and isinstance(node.value, ast.Name) \
                     and node.value.id == "sys":
@@ -85,6 +88,23 @@ def test_renderer_components_take_their_settings_whole():
     for cls in (NRCPathTracer, NRCRenderer, PathTracer):
         params = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
         assert len(params) <= 6, f"{cls.__name__}.__init__ takes {len(params)} parameters: {params}"
+
+
+def test_renderers_take_settings_not_the_raw_config():
+    """Renderers take their typed settings (read and resolved once: nrc.render.registry), never the raw config: no
+    renderer's ``__init__`` takes a ``DictConfig`` or a ``cfg``, and their modules do not import OmegaConf's."""
+    import inspect
+
+    from nrc.render.preview import PreviewRenderer
+    from nrc.render.pt import PathTracer
+    from nrc.render.radiance_caching.renderer import NRCRenderer
+
+    for cls in (NRCRenderer, PathTracer, PreviewRenderer):
+        params = inspect.signature(cls.__init__).parameters
+        assert "cfg" not in params and "settings" in params, (cls.__name__, list(params))
+        assert not any("DictConfig" in str(p.annotation) for p in params.values()), cls.__name__
+        source = inspect.getsource(inspect.getmodule(cls))
+        assert "DictConfig" not in source, inspect.getmodule(cls).__name__
 
 
 def _is_settings(arg: ast.arg) -> bool:
@@ -140,3 +160,131 @@ def test_the_feature_scan_sees_code_but_not_docstrings(tmp_path):
     f.write_text('"""debias here is prose."""\nx = 1  # reuse in a comment\ny = cache_target = 2\n')
     found = [n for n, line in code_lines(f).items() if CORE_FEATURES.search(line)]
     assert found == [3]
+
+
+# files a reader can hold: derivations go to the docs, code is split along its concepts
+MAX_LINES = 500
+MAX_DOCSTRING_LINES = 40
+
+
+def oversized(paths: list[Path]) -> list[str]:
+    """The files of ``paths`` over :data:`MAX_LINES` lines or with a module docstring over
+    :data:`MAX_DOCSTRING_LINES` lines, each as ``path: what``."""
+    bad = []
+    for path in paths:
+        src = path.read_text()
+        lines = len(src.splitlines())
+        doc = ast.get_docstring(ast.parse(src)) or ""
+        if lines > MAX_LINES:
+            bad.append(f"{path}: {lines} lines (at most {MAX_LINES})")
+        if len(doc.splitlines()) > MAX_DOCSTRING_LINES:
+            bad.append(f"{path}: a module docstring of {len(doc.splitlines())} lines (at most {MAX_DOCSTRING_LINES})")
+    return bad
+
+
+def test_no_module_is_too_long_to_hold():
+    """No file in ``nrc/`` is over 500 lines, and no module docstring over 40 (derivations belong in ``docs/``)."""
+    bad = [b.replace(str(REPO) + "/", "") for b in oversized(sorted((REPO / "nrc").rglob("*.py")))]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_size_check_can_fail(tmp_path):
+    """The check above flags a long file and a long module docstring, and passes files at the limits."""
+    fine, long_code, long_doc = tmp_path / "fine.py", tmp_path / "long_code.py", tmp_path / "long_doc.py"
+    doc = '"""' + "\n".join(f"line {i}" for i in range(MAX_DOCSTRING_LINES)) + '"""\n'
+    fine.write_text(doc + "x = 1\n" * (MAX_LINES - MAX_DOCSTRING_LINES))
+    long_code.write_text("x = 1\n" * (MAX_LINES + 1))
+    long_doc.write_text('"""' + "\n".join(f"line {i}" for i in range(MAX_DOCSTRING_LINES + 1)) + '"""\n')
+    found = oversized([fine, long_code, long_doc])
+    assert len(found) == 2, found
+    assert "long_code.py: 501 lines" in found[0] and "long_doc.py: a module docstring of 41" in found[1]
+
+
+# ---------------------------------------------------------------------------- the product and the lab apart
+LAB = ("scripts", "lab")  # the lab's top-level names (scripts/ itself, its shared package)
+
+
+def lab_imports(path: Path) -> list[str]:
+    """The imports of ``path`` that reach the lab."""
+    return [t for t in imports(path) if t.split(".")[0] in LAB]
+
+
+def test_the_product_never_imports_the_lab():
+    bad = [f"{p.relative_to(REPO)} imports {t}" for p in sorted((REPO / "nrc").rglob("*.py")) for t in lab_imports(p)]
+    assert not bad, bad
+
+
+def private_uses(path: Path) -> list[str]:
+    """Underscore names of ``nrc`` a script uses: imported from an ``nrc`` module, or an attribute ``x._name`` read
+    off anything (a script's own underscore names are plain names, never attributes of an object; dunders pass)."""
+    def private(name: str) -> bool:
+        return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+    tree = ast.parse(path.read_text())
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "nrc":
+            out += [f"{path.name}:{node.lineno}: from {node.module} import {a.name}" for a in node.names
+                    if private(a.name) or any(private(part) for part in node.module.split("."))]
+        elif isinstance(node, ast.Import):
+            out += [f"{path.name}:{node.lineno}: import {a.name}" for a in node.names
+                    if a.name.split(".")[0] == "nrc" and any(private(part) for part in a.name.split("."))]
+        elif isinstance(node, ast.Attribute) and private(node.attr):
+            out.append(f"{path.name}:{node.lineno}: .{node.attr}")
+    return out
+
+
+def test_scripts_use_only_the_products_public_names():
+    """The lab runs on the product's public names (a script needing an internal asks for a public one)."""
+    bad = [hit for p in sorted((REPO / "scripts").rglob("*.py")) for hit in private_uses(p)]
+    assert not bad, "\n".join(bad)
+
+
+def checkout_climbs(path: Path, package: Path) -> list[str]:
+    """``Path(__file__)``-relative paths in ``path`` that climb out of ``package`` (``.parent`` chains and
+    ``parents[k]``), i.e. into the checkout around an editable install (or site-packages around a wheel)."""
+    depth = len(path.relative_to(package).parts)  # .parent climbs this many times to leave the package
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        climbs, inner = 0, node
+        while True:
+            if isinstance(inner, ast.Attribute) and inner.attr == "parent":
+                climbs, inner = climbs + 1, inner.value
+            elif isinstance(inner, ast.Subscript) and isinstance(inner.value, ast.Attribute) \
+                    and inner.value.attr == "parents" and isinstance(inner.slice, ast.Constant):
+                climbs, inner = climbs + int(inner.slice.value) + 1, inner.value.value
+            elif isinstance(inner, ast.Call) and isinstance(inner.func, ast.Attribute) and inner.func.attr == "resolve":
+                inner = inner.func.value
+            else:
+                break
+        if climbs and "__file__" in ast.unparse(inner) and climbs >= depth + 1:
+            out.append(f"{path.relative_to(package.parent)}:{node.lineno}: {ast.unparse(node)}")
+    return out
+
+
+# the one climb kept: an editable install's Hydra configs are the checkout's conf/ (a wheel carries nrc/conf/)
+CLIMBS_ALLOWED = {"nrc/config.py: Path(__file__).resolve().parent.parent"}
+
+
+def test_the_product_never_locates_the_checkout():
+    """Default folders come from the working directory, a config key or an environment variable, never from where
+    the package's files lie (a wheel's files lie in site-packages)."""
+    hits = [h for p in sorted((REPO / "nrc").rglob("*.py")) for h in checkout_climbs(p, REPO / "nrc")]
+    bad = [h for h in hits if re.sub(r":\d+:", ":", h) not in CLIMBS_ALLOWED]
+    assert not bad, "\n".join(bad)
+    assert {re.sub(r":\d+:", ":", h) for h in hits} == CLIMBS_ALLOWED  # the allowance is still needed
+
+
+def test_the_guards_can_fail(tmp_path):
+    """The three scans above see what they forbid."""
+    pkg = tmp_path / "nrc"
+    (pkg / "evaluation").mkdir(parents=True)
+    climb = pkg / "evaluation" / "reference.py"
+    climb.write_text("from pathlib import Path\nA = Path(__file__).resolve().parents[2] / 'data'\n"
+                     "B = Path(__file__).resolve().parents[1]\nC = Path(__file__).parent.parent.parent\n")
+    assert sorted(h.split(":")[1] for h in checkout_climbs(climb, pkg)) == ["2", "4"]
+    script = tmp_path / "tool.py"
+    script.write_text("from nrc.render.pt import _x\nfrom lab import render\nimport scripts.lab\n"
+                      "pt._wavefront(1)\nobj.__dict__\n_own = 1\n")
+    assert [h.split(":")[1] for h in private_uses(script)] == ["1", "4"]
+    assert lab_imports(script) == ["lab", "scripts.lab"]

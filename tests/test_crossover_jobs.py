@@ -18,7 +18,7 @@ TINY = ["--points", "d0.35", "--width", "12", "--height", "8", "--warmup", "2", 
 
 
 def test_mixed_machine_types_are_refused():
-    from nrc.evaluation.jobs import check_one_machine_type
+    from lab.jobs import check_one_machine_type
 
     one = {"meta": {"machine_type": "CPU A, 2 cores, 2 threads, torch 2.13.0"}}
     other = {"meta": {"machine_type": "CPU B, 32 cores, 32 threads, torch 2.13.0"}}
@@ -28,7 +28,7 @@ def test_mixed_machine_types_are_refused():
 
 
 def test_slurm_parameters_and_bad_ones():
-    from nrc.evaluation.jobs import run_commands, slurm_parameters
+    from lab.jobs import run_commands, slurm_parameters
 
     assert slurm_parameters(["partition=cpu", "cpus_per_task=32", "timeout_min=30"]) == {
         "slurm_exclusive": True, "timeout_min": 30, "slurm_partition": "cpu", "cpus_per_task": 32}

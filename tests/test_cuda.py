@@ -88,14 +88,14 @@ def test_training_steps_match_the_cpu(name):
 
 
 def _pt_images(overrides: list[str], device: str, backend: str, seeds: range) -> list[np.ndarray]:
-    from nrc.render.pt import PathTracer
+    from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
     images = []
     for seed in seeds:
         cfg = compose(["renderer=pt", *TINY, *overrides, f"device={device}", f"renderer.backend={backend}",
                        f"scene.integrator.seed={seed}"])
-        result = PathTracer(load_scene(cfg.scene, cfg.device), cfg).render()
+        result = make_renderer("pt", load_scene(cfg.scene, cfg.device), cfg).render()
         assert result.metrics["backend"] == backend, result.metrics["backend_reason"]
         images.append(result.image)
     return images
@@ -124,12 +124,12 @@ def test_path_tracer_on_cuda_matches_the_cpu(scene, backend, cpu_images):
 def test_short_nrc_run_on_cuda():
     """Ten NRC frames on CUDA: the cache lives and trains there, the loss is finite and falls, the image is
     finite and its mean is near the path tracer's (the early cache's bias allowed for)."""
-    from nrc.render.radiance_caching import NRCRenderer
+    from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
     cfg = compose(["renderer=nrc", *TINY, "scene=sun_sky", "device=cuda", "frames=10", "renderer.backend=eager",
                    "renderer.training.width=32", "renderer.training.height=32", "renderer.log.tensorboard=false"])
-    renderer = NRCRenderer(load_scene(cfg.scene, cfg.device), cfg)
+    renderer = make_renderer("nrc", load_scene(cfg.scene, cfg.device), cfg)
     assert next(renderer.cache.network.parameters()).is_cuda
     result = renderer.render()
     losses = [v for v in result.metrics["history"]["loss"] if v is not None]
@@ -146,12 +146,12 @@ def test_cuda_graphs_give_the_same_image(backend):
     used (captured, not turned off by a failed capture)."""
     over = SCENES["sun_sky"][:2] + ["scene.integrator.spp=4", "renderer.slots=4096"]
     want = _pt_images(over, "cuda", backend, range(1))[0]
-    from nrc.render.pt import PathTracer
+    from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
     cfg = compose(["renderer=pt", *TINY, *over, "device=cuda", f"renderer.backend={backend}",
                    "scene.integrator.seed=0", "renderer.cuda_graphs=true"])
-    result = PathTracer(load_scene(cfg.scene, cfg.device), cfg).render()
+    result = make_renderer("pt", load_scene(cfg.scene, cfg.device), cfg).render()
     report = result.metrics["cuda_graphs"]
     assert report["on"] and report["captures"] >= 2, report
     np.testing.assert_allclose(result.image, want, rtol=1e-5, atol=1e-6)

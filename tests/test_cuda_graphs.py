@@ -11,7 +11,7 @@ import torch
 
 from conftest import compose
 from nrc.errors import ConfigError
-from nrc.render.radiance_caching import NRCRenderer
+from nrc.render.registry import make_renderer
 from nrc.render.wavefront import graphs as wg
 from nrc.render.wavefront import machine as wm
 from nrc.render.wavefront.machine import SceneInputs
@@ -114,7 +114,7 @@ def test_a_path_tracer_whose_capture_fails_renders_without_graphs(monkeypatch):
 def test_nrc_through_graphs_is_bitwise_the_same(cpu_graphs):
     def run(graphs):
         cfg = compose([*NRC_TINY, "frames=2", "renderer.backend=eager", "renderer.slots=200"])
-        r = NRCRenderer(load_scene(cfg.scene), cfg)
+        r = make_renderer("nrc", load_scene(cfg.scene), cfg)
         for core in r.tracer._cores.values():
             core.graphs = graphs
         return r.render()
@@ -131,4 +131,4 @@ def test_cuda_graphs_need_a_gpu(renderer):
             make(["renderer.cuda_graphs=true"])
         else:
             cfg = compose([*NRC_TINY, "renderer.cuda_graphs=true"])
-            NRCRenderer(load_scene(cfg.scene), cfg)
+            make_renderer("nrc", load_scene(cfg.scene), cfg)

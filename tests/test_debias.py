@@ -17,7 +17,7 @@ import torch
 from conftest import assert_images_agree, compose
 from test_nrc import FULL, ORACLE, SEEDS, SMALL, ZERO, StubCache, render_images, sun_oracle
 from nrc.errors import ConfigError
-from nrc.render.radiance_caching import NRCRenderer
+from nrc.render.registry import make_renderer
 from nrc.scene import load_scene
 
 # the oracle scene's paths stop at their last allowed vertex (2), where sun_oracle is exact
@@ -117,7 +117,7 @@ def test_diagnostics_measure_the_cache_error_and_suffixes_train_on_the_truth():
     cfg = compose(cfg_overrides)
     scene = load_scene(cfg.scene)
     oracle = sun_oracle(scene)
-    r = NRCRenderer(scene, cfg, cache=StubCache(scaled(0.5)(scene)))
+    r = make_renderer("nrc", scene, cfg, cache=StubCache(scaled(0.5)(scene)))
     pushed = []
     push = r.ring.push
     r.ring.push = lambda records, valid, *frame: (pushed.append((records, valid)), push(records, valid, *frame))[1]
@@ -132,7 +132,7 @@ def test_diagnostics_measure_the_cache_error_and_suffixes_train_on_the_truth():
     assert ratio == pytest.approx(1.0, abs=0.1)
 
     cfg = compose([*cfg_overrides[:-1], "scene.integrator.spp=1"])
-    big = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(scaled(10.0)(scene)))
+    big = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=StubCache(scaled(10.0)(scene)))
     image, stats, _ = big.render_frame(0)
     assert stats["debias_negative_pixels"] > 0
     assert stats["debias_negative_pixels"] == int((image < 0).any(dim=-1).sum())
@@ -141,7 +141,7 @@ def test_diagnostics_measure_the_cache_error_and_suffixes_train_on_the_truth():
 def test_debias_logs_and_metrics(tmp_path):
     cfg = compose(["renderer=nrc", *SMALL, *debias(0.5), "renderer.training.width=8", "renderer.training.height=8",
                    "frames=2", "renderer.backend=eager"])
-    r = NRCRenderer(load_scene(cfg.scene), cfg)
+    r = make_renderer("nrc", load_scene(cfg.scene), cfg)
     r.attach_output(tmp_path)
     m = r.render().metrics
     assert m["debias_probability"] == 0.5 and m["debias_train_on_suffixes"] is True
@@ -161,7 +161,7 @@ def test_debias_logs_and_metrics(tmp_path):
 def test_bad_debias_settings_name_the_key(override, message):
     cfg = compose(["renderer=nrc", *SMALL, override])
     with pytest.raises(ConfigError, match=message):
-        NRCRenderer(load_scene(cfg.scene), cfg)
+        make_renderer("nrc", load_scene(cfg.scene), cfg)
 
 
 @pytest.mark.slow

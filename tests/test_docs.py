@@ -1,28 +1,32 @@
 """The docs' cross-references hold: every ``docs/<name>.md`` that the configs, the code, the scripts and the docs
-name exists, and every section such a reference names in double quotes starts a section of that file.
+name exists (references in ``docs/`` and measurements in ``docs/measurements/``), and every section such a
+reference names in double quotes starts a section of that file.
 
 A reference is the path followed, in the same sentence or comment, by one or more quoted names, e.g.
 ``docs/nrc.md, "Thick clouds"``, ``docs/nrc.md "Unbiased NRC"`` or
-``(docs/nrc_measurements.md, "Defaults by measurement" and "Training budget on small images")``; a comment or a
+``(docs/measurements/nrc_defaults.md, "Defaults by measurement" and "Training budget on small images")``; a comment or a
 paragraph may wrap it over lines. A section is a heading (``#`` to ``####``) or a paragraph's bold lead
 (``**Light selection** (...)``, also in a list item), which the docs use as sub-sections. A name matches a
 section whose text starts with it, backticks ignored. Markdown links to ``#anchors`` (the contents lists) must
-resolve too. Reads files only: no rendering.
+resolve too. The references (``docs/*.md`` but the generated results page and its intro) carry no dated text:
+dated runs go to ``docs/measurements/``. Reads files only: no rendering.
 """
 
 import re
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-SOURCES = ("conf/**/*.yaml", "nrc/**/*.py", "scripts/*.py", "README.md", "docs/*.md")
+SOURCES = ("conf/**/*.yaml", "nrc/**/*.py", "scripts/*.py", "README.md", "docs/*.md", "docs/measurements/*.md")
 
 NAME = r'"[^"\n]+"'
 # the path; closing backticks / brackets; at least one of ", (" or a space; the quoted names joined by "," / and / or
-REF = re.compile(r'(?<![\w/.-])docs/([\w-]+)\.md[`\])]*'
+REF = re.compile(r'(?<![\w/.-])docs/((?:measurements/)?[\w-]+)\.md[`\])]*'
                  rf'(?:[\s,(]+(?:sections?\s+)?({NAME}(?:\s*,?\s*(?:\band\s+|\bor\s+)?{NAME})*))?')
 HEADING = re.compile(r"^#{1,4}\s+(.+?)\s*#*\s*$")
 BOLD_LEAD = re.compile(r"^\s*(?:[-*]\s+)?\*\*(.+?)\*\*")
-LINK = re.compile(r"\]\(((?:docs/)?[\w-]+\.md)?#([^)\s]+)\)")
+LINK = re.compile(r"\]\(((?:docs/|\.\./)?(?:measurements/)?[\w-]+\.md)?#([^)\s]+)\)")
+DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
+NOTEBOOK = ("results.md", "results_intro.md")  # generated from dated runs / its hand-written intro
 
 
 def _sources() -> list[Path]:
@@ -83,7 +87,7 @@ def _references() -> list[tuple[str, str, list[str]]]:
 def test_the_pattern_finds_the_known_references():
     refs = _references()
     assert ("conf/renderer/nrc.yaml", "docs/nrc.md", ["Frames bounded by work", "Current defaults and why"]) in refs
-    assert ("conf/renderer/nrc.yaml", "docs/nrc_measurements.md", ["Thick clouds"]) in refs  # wrapped comment
+    assert ("conf/renderer/nrc.yaml", "docs/measurements/nrc_defaults.md", ["Thick clouds"]) in refs  # wrapped comment
     assert ("conf/renderer/nrc.yaml", "docs/nrc.md", ["Unbiased NRC"]) in refs  # no comma
     assert sum(bool(names) for _, _, names in refs) >= 30
 
@@ -104,10 +108,19 @@ def test_named_docs_exist_and_quoted_sections_start_a_heading():
 
 def test_markdown_anchor_links_resolve():
     problems = []
-    for src in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]:
+    docs = [*sorted((REPO / "docs").glob("*.md")), *sorted((REPO / "docs/measurements").glob("*.md"))]
+    for src in [REPO / "README.md", *docs]:
         for m in LINK.finditer(src.read_text(encoding="utf-8")):
             target = src if not m.group(1) else (REPO / m.group(1) if m.group(1).startswith("docs/")
                                                  else src.parent / m.group(1))
             if not target.is_file() or m.group(2) not in _anchors(target):
                 problems.append(f"{src.relative_to(REPO)}: no anchor #{m.group(2)} in {target.relative_to(REPO)}")
+    assert not problems, "\n".join(problems)
+
+
+def test_references_carry_no_dates():
+    """A reference says how it works and why; the dated runs behind it live in docs/measurements/."""
+    problems = [f"{doc.relative_to(REPO)}:{i}: {line.strip()[:80]}"
+                for doc in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))] if doc.name not in NOTEBOOK
+                for i, line in enumerate(doc.read_text(encoding="utf-8").splitlines(), 1) if DATE.search(line)]
     assert not problems, "\n".join(problems)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from conftest import assert_images_agree, compose, hollow_lantern
-from nrc.render.pt import PathTracer
+from nrc.render.registry import make_renderer
 from nrc.scene import load_scene
 from nrc.transport.equiangular import PhaseAngleTable, sample_distance, segments
 from nrc.volume.grid import DensityGrid
@@ -93,7 +93,7 @@ def _renders(extra: list[str], seeds: int = 4) -> list[np.ndarray]:
     out = []
     for seed in range(seeds):
         cfg = compose([*LANTERN, *extra, f"scene.integrator.seed={seed}"])
-        out.append(PathTracer(load_scene(cfg.scene), cfg).render().image)
+        out.append(make_renderer("pt", load_scene(cfg.scene), cfg).render().image)
     return out
 
 

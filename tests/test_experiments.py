@@ -1,5 +1,5 @@
-"""The thesis experiments: conf/experiment/*.yaml compose, and the reports (:mod:`nrc.evaluation.experiments`,
-behind scripts/experiments_report.py) on hand-made runs."""
+"""The thesis experiments: conf/experiment/*.yaml compose, and the reports (``scripts/experiments_report.py``)
+on hand-made runs."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml") if
 
 
 def test_canonical_benchmark_config_is_the_documented_scene():
-    """``+experiment=bench_canonical`` (docs/benchmarks.md): independent of the scene presets."""
+    """``+experiment=bench_canonical`` (docs/measurements/speed.md): independent of the scene presets."""
     cfg = compose_experiment("bench_canonical")
     v, c, (light,) = cfg.scene.volume, cfg.scene.camera, cfg.scene.lights
     assert v.path.endswith("wdas_cloud_sixteenth.vdb") and list(v.center) == [0, 0, 0] and v.diagonal == 107.5
@@ -38,9 +38,7 @@ def compose_experiment(name: str, overrides: list[str] | None = None):
 
 @pytest.fixture(scope="module")
 def report():
-    from nrc.evaluation import experiments
-
-    return experiments
+    return load_script("experiments_report")
 
 
 def test_every_report_has_its_experiments(report):
@@ -71,7 +69,7 @@ def test_experiment_composes_as_a_multirun(name):
 
 def test_framings_include_one_without_the_cloud():
     from nrc.metrics import medium_mask
-    from nrc.evaluation.reference import medium_alpha
+    from nrc.render.preview import medium_alpha
     from nrc.scene import load_scene
 
     seen = {}
@@ -96,7 +94,8 @@ def fake_run(job, cfg, renderer: str, image: np.ndarray, metrics: dict, choices:
 
 def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
     from conftest import compose
-    from nrc.evaluation.reference import scene_hash, write_reference_exr
+    from nrc.config import scene_hash
+    from nrc.evaluation.reference import write_reference_exr
 
     cfg = compose(["scene.camera.width=4", "scene.camera.height=3"])
     OmegaConf.set_struct(cfg, False)
@@ -117,7 +116,7 @@ def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
         metrics = {"time_render_s": 2.0} if renderer == "pt" else {
             "frame_times_s": [5.0, 1.0, 1.0], "loss_per_frame": [3.0, 2.0, 1.0], "time_train_s": [1, 0.5, 0.5]}
         fake_run(root / exp / str(i), c, renderer, img, metrics, {"renderer": renderer})
-    cli = load_script("experiments_report")
+    cli = report  # the module whose REF_DIR is patched above
     assert cli.main(["nrc_vs_pt", "--root", str(root), "--docs", str(tmp_path / "docs")]) == 0
     md = (tmp_path / "docs" / "results" / "nrc_vs_pt.md").read_text()
     rows: dict[str, list[str]] = {}
@@ -147,7 +146,8 @@ def test_report_on_hand_made_runs(report, tmp_path, monkeypatch):
 def test_headline_is_nrc_plus_oidn_against_pt_plus_oidn_with_the_bias():
     """The results page's headline: the side-lit run's NRC + OIDN over PT + OIDN ratio at equal time, NRC + OIDN's
     image mean beside it, the raw ratio, and the same ratio of every other scene-type run."""
-    from nrc.evaluation.experiments import headline, scene_type_table
+    report = load_script("experiments_report")
+    headline, scene_type_table = report.headline, report.scene_type_table
 
     def run(ratio_den, mean):
         rows = [{"mode": "single", "config": "nrc+oidn", "renderer": "nrc", "denoised": True, "time_s": 0.3,

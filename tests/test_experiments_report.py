@@ -1,6 +1,6 @@
-"""The README's generated figure captions (``scripts/experiments_report.py --results``, code in
-:mod:`nrc.evaluation.experiments`): built from made-up result files in a temp dir, written between their markers
-only, idempotent, and a missing marker is one error line."""
+"""The README's generated block and docs/results.md (``scripts/experiments_report.py --results``): built from
+made-up result files in a temp dir, written between the block's markers only, idempotent, and a missing marker is
+one error line."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import json
 import pytest
 
 from conftest import load_script
-from nrc.evaluation import experiments as ex
+
+ex = load_script("experiments_report")
 
 BEFORE = "# A project\n\nHand-written text, 1.7x and all.\n\n![a figure](docs/images/clouds.png)\n\n*Its caption.*\n"
 AFTER = "\n## Later\nMore hand-written text.\n"
@@ -28,16 +29,16 @@ def summary(ratio: float, mean: float, warmup: int) -> dict:
             "equal_time": ratios}
 
 
-COMPARISON = {
-    "scene": "a made-up cloud", "comparison": "side_lit", "width": 160, "height": 90, "reference_spp": 256,
-    "reference_rel_mse_floor_medium": 1e-4,
-    "pt": {"rel_mse_medium": 0.05, "mean_over_reference_medium": 0.99, "spp": 8, "time_s": 0.61},
-    "nrc": {"rel_mse_medium": 0.06, "mean_over_reference_medium": 0.95, "spp_per_frame": 4, "frames": 12,
-            "time_per_frame_s": 0.62, "time_all_frames_s": 9.0},
-    "pt_oidn": {"rel_mse_medium": 0.002, "mean_over_reference_medium": 0.98, "time_denoise_s": 0.03,
-                "rel_mse_medium_per_seed": {"11": 0.002, "12": 0.0019, "13": 0.003}},
-    "nrc_oidn": {"rel_mse_medium": 0.01, "mean_over_reference_medium": 0.94, "time_denoise_s": 0.02},
-}
+def crossover_map(d, ratios, name=ex.CROSSOVER, points=None, argv=("--out", "x")):
+    """A made-up ``scripts/crossover_map.py`` output: ``ratios`` = [(tau, albedo, NRC+OIDN / PT+OIDN)]."""
+    out = d / "results" / name
+    out.mkdir(parents=True, exist_ok=True)
+    names = points or [f"p{i}" for i in range(len(ratios))]
+    pts = [{"point": n, "tau_median": tau, "albedo": a, "ratio_oidn": r, "ratio_raw": 2 * r,
+            "nrc_mean_ratio_medium": 0.97, "nrc+oidn_mean_ratio_medium": 0.95}
+           for n, (tau, a, r) in zip(names, ratios)]
+    (out / "map.json").write_text(json.dumps({"argv": list(argv), "points": pts}))
+    (out / "map.md").write_text("| point | ... |\n|---|---|\n")
 
 
 @pytest.fixture
@@ -48,54 +49,38 @@ def docs(tmp_path):
         (d / "results" / name).mkdir(parents=True)
         (d / "results" / name / "summary.json").write_text(json.dumps(s))
         (d / "results" / name / "speed_vs_error.md").write_text("| a table |")
-    (d / "images").mkdir()
-    (d / "images" / "nrc_vs_pt.json").write_text(json.dumps(COMPARISON))
-    figures = {"heroes": {"cumulus": {"spp": 64, "rel_mse_floor": 0.004, "time_s": 10.0},
-                          "disney": {"spp": 64, "rel_mse_floor": 0.002, "time_s": 11.0}},
-               "machine": "test machine", "skipped": ["heroes"], "comparison": COMPARISON,
-               "animation": {"frames": 12, "warmup_frames": 3, "degrees_per_frame": 30.0, "pt_spp": 5,
-                             "pt_time_per_frame_s": 0.41, "nrc_time_per_frame_s": 0.52}}
-    (d / "images" / "figures.json").write_text(json.dumps(figures))
+    crossover_map(d, [(7.0, 0.99, 7.9), (98.0, 0.99, 1.7), (196.0, 0.99, 1.5), (98.0, 0.95, 1.1)])
+    crossover_map(d, [(98.0, 0.99, 0.77), (196.0, 0.99, 0.67)], ex.CROSSOVER + "_warm", points=("p1", "p2"),
+                  argv=["--out", "x", "--warmup", "150", "--points", "p1,p2"])
     return d
 
 
-def readme(names=("crossover", "clouds", "nrc_vs_pt", "sun"), body: str = "old numbers, 9.4x") -> str:
+def readme(names=("results",), body: str = "old numbers, 9.4x") -> str:
     blocks = "".join(f"\n{ex.README_BEGIN.format(n)}\n{body}\n{ex.README_END}\n\nbetween\n" for n in names)
     return BEFORE + blocks + AFTER
 
 
-def test_blocks_carry_the_result_files_numbers_with_their_conditions(docs):
-    blocks = {k: " ".join(ex.block_markdown(v)) for k, v in ex.readme_blocks(docs).items()}
-    clouds, cmp, sun = blocks["clouds"], blocks["nrc_vs_pt"], blocks["sun"]
-    assert "64-spp path trace" in clouds and "0.002 (the Disney cloud) to 0.004 (cumulus)" in clouds
-    assert "test machine" not in clouds and "rendered in" not in clouds  # the last run skipped the heroes
-    assert "a made-up cloud, 160 x 90, one run (test machine)" in cmp and "12 frames at 4 spp" in cmp
-    assert "8 spp in 0.61 s" in cmp and "256-spp reference, whose own noise adds 0.0001" in cmp
-    assert "**0.002** (the median of 3 seeds, 0.0019–0.003)" in cmp and "**0.01**, 5x the path tracer's" in cmp
-    assert "NRC + OIDN 0.940, the path tracer + OIDN 0.980" in cmp
-    # the equal-time runs: the ranges by warm-up, the image means, the verdict and the figure's own scene
-    assert "is 1.3x (the default cumulus" in cmp and "to 3.5x (side-lit Disney cloud" in cmp
-    assert "after 30 warm-up frames" in cmp and "and 1.5x (side-lit Disney cloud, 160 x 90, a warm cache) after 150" in cmp
-    assert "NRC scored at 1 spp a frame" in cmp and "from its 1–8-spp renders" in cmp
-    assert "image mean over the cloud's pixels is 0.95–1.02" in cmp and "ahead on every run" in cmp
-    assert "they measure 3.5x (image mean 0.95); the figure is a single run at 4 spp" in cmp
-    assert "12 frames, the sun 30 degrees further" in sun and "5 spp afresh every frame in 0.41 s" in sun
-    assert "takes 0.52 s" in sun and "recorded frames; test machine)" in sun  # the last run made the animation
-    figures = json.loads((docs / "images" / "figures.json").read_text())
-    assert ex.readme_animation({**figures, "skipped": ["heroes", "animation"]}) == ex.readme_animation(
-        {k: v for k, v in figures.items() if k != "machine"})
+def test_the_block_states_the_finding_a_table_and_the_map(docs):
+    lines = ex.readme_results(docs)
+    blank = lines.index("")
+    sentence = " ".join(lines[:blank])
+    assert "after 30 warm-up frames from an untrained cache is higher at every point of the crossover map" in sentence
+    assert "from 1.1x at optical depth 98 (albedo 0.95) to 7.9x at optical depth 7 (albedo 0.99)" in sentence
+    assert "with a warm cache (150 frames) it wins at 2 of the 2 points measured: 0.77x at optical depth 98, " \
+           "0.67x at optical depth 196" in sentence
+    assert sentence.count(". ") == 0 and sentence.endswith("(below 1: NRC wins).")  # one sentence
+    table = [line for line in lines if line.startswith("|")]
+    assert table[0].startswith("| point | optical depth | albedo | NRC+OIDN / PT+OIDN, 30 frames | "
+                               "NRC+OIDN / PT+OIDN, 150 frames (warm) | NRC+OIDN mean / reference |")
+    rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]] for r in table[2:]}
+    assert rows["p0"] == ["7", "0.99", "7.9", "–", "0.95"] and rows["p1"] == ["98", "0.99", "1.7", "0.77", "0.95"]
+    assert list(rows) == ["p3", "p0", "p1", "p2"]  # by albedo, then optical depth
+    assert lines[-1] == f"[![Where NRC pays off: the crossover map](docs/results/{ex.CROSSOVER}/map.png)](docs/results.md)"
 
 
-def test_verdict_follows_the_ratios(docs):
-    summaries = {"oidn_160x90_side_lit": ("side-lit", summary(0.8, 1.0, 30)),
-                 "oidn_160x90_cumulus": ("cumulus", summary(2.0, 1.0, 30))}
-    assert "NRC + OIDN is ahead on 1 of 2 runs" in ex.sweep_summary(summaries)
-    assert ex.sweep_summary({"speed_160x90_v2": ("old", summary(2.0, 1.0, 30))}) is None
-
-
-def test_missing_result_files_say_so(tmp_path):
-    blocks = ex.readme_blocks(tmp_path)
-    assert all(len(v) == 1 and v[0].startswith("(not measured") for v in blocks.values())
+def test_a_missing_map_says_so(tmp_path):
+    (line,) = ex.readme_results(tmp_path)
+    assert line.startswith("(not measured") and "crossover_map.py" in line
 
 
 def test_results_rewrites_the_readme_block_only_and_is_idempotent(docs, tmp_path, capsys):
@@ -106,13 +91,11 @@ def test_results_rewrites_the_readme_block_only_and_is_idempotent(docs, tmp_path
     assert load_script("experiments_report").main(args) == 0
     text = path.read_text()
     assert text.startswith(BEFORE) and text.endswith(AFTER) and "9.4x" not in text
-    for name in ("crossover", "clouds", "nrc_vs_pt", "sun"):
-        assert text.count(ex.README_BEGIN.format(name)) == 1
-    assert text.count(ex.README_END) == 4 and text.count("\nbetween\n") == 4
-    # the README and docs/results.md state the same ratios (one source)
+    assert text.count(ex.README_BEGIN.format("results")) == 1 and text.count(ex.README_END) == 1
+    # the README and docs/results.md state the same ratios (one source: the crossover maps)
     results = (docs / "results.md").read_text()
-    assert "relMSE ratio **3.5**" in results and "to 3.5x (side-lit" in text.replace("\n", " ")
-    assert "1.3 (mean 1.02)" in results and "is 1.3x (the default cumulus" in text.replace("\n", " ")
+    assert "| p1 | 98 | 0.99 | 1.7 | 0.77 |" in text and "1.7x at optical depth 98" in results
+    assert "relMSE ratio **3.5**" in results and "1.3 (mean 1.02)" in results
     # docs/results.md is a short summary; each run has its own page, linked from it
     assert len(results.splitlines()) <= 150 and "](results/oidn_160x90_side_lit/README.md)" in results
     page = (docs / "results" / "oidn_160x90_side_lit" / "README.md").read_text()
@@ -122,36 +105,35 @@ def test_results_rewrites_the_readme_block_only_and_is_idempotent(docs, tmp_path
     assert len(generated) > 10 and not any(line.startswith(("+", "-", "#")) for line in generated)
     capsys.readouterr()
     assert load_script("experiments_report").main(args) == 0
-    assert path.read_text() == text and "generated figure captions unchanged" in capsys.readouterr().out
+    assert path.read_text() == text and "its generated block unchanged" in capsys.readouterr().out
 
 
 def test_a_missing_marker_is_one_error_line(docs, tmp_path):
     path = tmp_path / "README.md"
-    path.write_text(readme(names=("crossover", "clouds", "nrc_vs_pt")))
+    path.write_text(readme(names=()))
     with pytest.raises(SystemExit) as e:
         load_script("experiments_report").main(["batch_filters", "--results", "--docs", str(docs),
                                                  "--root", str(tmp_path / "none"), "--readme", str(path)])
     msg = str(e.value)
     assert msg.startswith("experiments_report: README.md: no line `<!-- generated: scripts/experiments_report.py "
-                          "--results: sun -->`") and "\n" not in msg
-    assert path.read_text() == readme(names=("crossover", "clouds", "nrc_vs_pt"))  # nothing written
+                          "--results: results -->`") and "\n" not in msg
+    assert path.read_text() == readme(names=())  # nothing written
     assert not (docs / "results.md").exists() and not (docs / "results" / "batch_filters.md").exists()
 
 
 @pytest.mark.parametrize("text, says", [
-    (readme() + ex.README_BEGIN.format("sun") + "\n", "appears 2 times"),
+    (readme() + ex.README_BEGIN.format("results") + "\n", "appears 2 times"),
     (readme().replace(ex.README_END + "\n\nbetween\n" + AFTER, "\n" + AFTER), "has no `<!-- end generated -->`"),
-    (readme() + ex.README_BEGIN.format("typo") + "\n" + ex.README_END + "\n", "unknown generated block"),
+    (readme() + ex.README_BEGIN.format("clouds") + "\n" + ex.README_END + "\n", "unknown generated block"),
 ])
 def test_bad_markers_are_named(text, says):
     with pytest.raises(ex.ReadmeError, match=says):
-        ex.rewrite_readme(text, {"crossover": ["x"], "clouds": ["a"], "nrc_vs_pt": ["b"], "sun": ["c"]})
+        ex.rewrite_readme(text, {"results": ["x"]})
 
 
 def test_wrap_never_starts_a_line_with_a_list_marker():
-    lines = ex.block_markdown(["NRC + OIDN - 1. the path tracer + OIDN " * 20])
+    lines = ex._wrap("NRC + OIDN - 1. the path tracer + OIDN " * 20)
     assert len(lines) > 5 and not any(line.startswith(("+", "-", "1.")) for line in lines)
-    assert lines[0].startswith("*NRC") and lines[-1].endswith("OIDN*")
 
 
 def test_a_report_without_runs_keeps_its_committed_markdown(tmp_path):
@@ -160,16 +142,6 @@ def test_a_report_without_runs_keeps_its_committed_markdown(tmp_path):
     kept.write_text("measured table")
     assert load_script("experiments_report").main(["batch_filters", "--docs", str(tmp_path / "docs"), "--root", str(tmp_path / "none")]) == 0
     assert kept.read_text() == "measured table"
-
-
-def crossover_map(d, ratios, name=ex.CROSSOVER):
-    """A made-up ``scripts/crossover_map.py`` output: ``ratios`` = [(tau, albedo, NRC+OIDN / PT+OIDN)]."""
-    out = d / "results" / name
-    out.mkdir(parents=True, exist_ok=True)
-    pts = [{"point": f"p{i}", "tau_median": tau, "albedo": a, "ratio_oidn": r, "ratio_raw": 2 * r,
-            "nrc_mean_ratio_medium": 0.97} for i, (tau, a, r) in enumerate(ratios)]
-    (out / "map.json").write_text(json.dumps({"argv": ["--out", "x"], "points": pts}))
-    (out / "map.md").write_text("| point | ... |\n|---|---|\n")
 
 
 def test_crossover_summary_states_where_nrc_pays_off(tmp_path):
@@ -187,14 +159,6 @@ def test_crossover_summary_states_where_nrc_pays_off(tmp_path):
     assert "With a warm cache (150 warm-up frames): 0.7x at optical depth 98 (albedo 0.99, image mean 0.97)" in \
         ex.crossover_summary(tmp_path)
     assert any("A warm cache" in line for line in ex.crossover_section(tmp_path))
-    assert ex.crossover_figure(tmp_path) is None  # no plot yet
-    (tmp_path / "results" / ex.CROSSOVER / "map.png").write_bytes(b"png")
-    image, caption = ex.crossover_figure(tmp_path)
-    assert image == f"[![Where NRC pays off: the crossover map](docs/results/{ex.CROSSOVER}/map.png)](docs/results.md)"
-    assert "NRC wins nowhere (best 1.5x at optical depth 98, albedo 0.99)" in caption
-    assert "warm cache: 0.7x at optical depth 98" in caption
-    lines = ex.block_markdown([image, caption])
-    assert lines[0] == image and lines[1] == "" and len(lines) == 4  # the plot and a caption of two lines
     crossover_map(tmp_path, [(98.0, 0.99, 1.2)], "crossover_480x270")
     assert "At 480 x 270: 1.2x at optical depth 98 (albedo 0.99" in ex.crossover_summary(tmp_path)
     assert any(line.startswith("**At 480 x 270**") for line in ex.crossover_section(tmp_path))

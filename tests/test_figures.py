@@ -14,9 +14,10 @@ def test_make_figures_writes_every_figure_with_consistent_numbers(tmp_path):
     from PIL import Image, ImageSequence
 
     from conftest import load_script
-    from nrc.evaluation.figures import HEROES, SHARED_VDB
 
-    log = load_script("make_figures").main(["--out", str(tmp_path / "img"), "--ref-dir", str(tmp_path / "refs"), "--hero-width", "24",
+    figures = load_script("make_figures")
+    HEROES, SHARED_VDB = figures.HEROES, figures.SHARED_VDB
+    log = figures.main(["--out", str(tmp_path / "img"), "--ref-dir", str(tmp_path / "refs"), "--hero-width", "24",
                 "--hero-height", "14", "--hero-spp", "4", "--chunk-spp", "2", "--width", "64", "--height", "36",
                 "--spp", "1", "--frames", "3", "--ref-spp", "8", "--anim-frames", "3", "--anim-warmup", "1",
                 "--backend", "eager", "--comparison", "default"])

@@ -5,13 +5,8 @@ import math
 import pytest
 import torch
 
-from nrc.transport.light_sampling import (
-    EnvironmentMap,
-    LightSampler,
-    direction_to_latlong,
-    latlong_to_direction,
-    uniform_sphere,
-)
+from nrc.transport.environment import EnvironmentMap, direction_to_latlong, latlong_to_direction, uniform_sphere
+from nrc.transport.light_sampling import LightSampler
 from nrc.transport.lights import DirectionalLight, EnvironmentLight, PointLight
 
 

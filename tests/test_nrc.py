@@ -12,8 +12,7 @@ import torch
 from conftest import assert_images_agree, compose
 from nrc.errors import ConfigError
 from nrc.render.radiance_caching.inference_filter import filtered_query
-from nrc.render.radiance_caching import NRCRenderer
-from nrc.render.pt import PathTracer
+from nrc.render.registry import make_renderer
 from nrc.transport.rng import RandomSource
 from nrc.render.radiance_caching.training_set import training_positions
 from nrc.scene import load_scene
@@ -77,12 +76,12 @@ def render_images(cfg_overrides: list[str], seeds: int, renderer: str, cache_fn=
                        f"renderer.backend={mode}"])
         scene = load_scene(cfg.scene)
         if renderer == "pt":
-            tracer = PathTracer(scene, cfg)
+            tracer = make_renderer("pt", scene, cfg)
             if backend == "step":
                 run_compiled_structure_eagerly(tracer.core)
             result = tracer.render()
         else:
-            r = NRCRenderer(scene, cfg, cache=StubCache(cache_fn(scene)))
+            r = make_renderer("nrc", scene, cfg, cache=StubCache(cache_fn(scene)))
             if backend == "step":
                 run_compiled_structure_eagerly(r.tracer.core)
             result = r.render()
@@ -257,7 +256,7 @@ def test_training_targets_match_a_hand_computed_path(tmp_path, target):
     cfg = compose(hand_config(tmp_path, "renderer.training.extra_vertices=2", f"renderer.cache_target={target}"))
     scene = load_scene(cfg.scene)
     cache = StubCache(lambda x, d: C.expand_as(x).clone())
-    r = NRCRenderer(scene, cfg, cache=cache)
+    r = make_renderer("nrc", scene, cfg, cache=cache)
     r.frame_rng = lambda frame: ConstantRandom(U)
     image, stats, _ = r.render_frame(0)
 
@@ -293,7 +292,7 @@ def test_capped_unbiased_training_path_ends_in_the_cache_at_its_cap(tmp_path, ta
                                     "renderer.training.unbiased_max_vertices=3"])):
         cfg = compose(hand_config(tmp_path, *extra, f"renderer.cache_target={target}"))
         cache = StubCache(lambda x, d: C.expand_as(x).clone())
-        r = NRCRenderer(load_scene(cfg.scene), cfg, cache=cache)
+        r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=cache)
         r.frame_rng = lambda frame: ConstantRandom(U)
         _, stats, _ = r.render_frame(0)
         assert stats["cache_queries"] == 2
@@ -309,7 +308,7 @@ def test_a_training_path_that_spans_frames_leaves_the_records_it_leaves_within_i
     flight, and they enter the ring buffer marked with frame 0."""
     waited = compose(hand_config(tmp_path, "renderer.training.extra_vertices=2"))
     cache = StubCache(lambda x, d: C.expand_as(x).clone())
-    r = NRCRenderer(load_scene(waited.scene), waited, cache=cache)
+    r = make_renderer("nrc", load_scene(waited.scene), waited, cache=cache)
     r.frame_rng = lambda frame: ConstantRandom(U)
     image0, stats0, _ = r.render_frame(0)
     assert stats0["training_paths_in_flight"] == 0
@@ -317,7 +316,7 @@ def test_a_training_path_that_spans_frames_leaves_the_records_it_leaves_within_i
 
     cfg = compose([*hand_config(tmp_path, "renderer.training.extra_vertices=2"), "renderer.training.carry_frames=4"])
     cache = StubCache(lambda x, d: C.expand_as(x).clone())
-    r = NRCRenderer(load_scene(cfg.scene), cfg, cache=cache)
+    r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=cache)
     r.frame_rng = lambda frame: ConstantRandom(U)
     image, stats, _ = r.render_frame(0)
     assert stats["training_paths_in_flight"] == 1 and stats["train_records_valid"] == 0
@@ -341,7 +340,7 @@ def test_a_carried_path_in_its_last_frame_ends_in_the_cache_at_its_next_vertex(t
     (unbiased training paths of the hand scene would run to ``max_scatter`` 40)."""
     long = ["renderer.training.unbiased_fraction=1.0", "scene.integrator.max_scatter=40"]
     cfg = compose([*hand_config(tmp_path, *long), "renderer.training.carry_frames=1"])
-    r = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
+    r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
     r.frame_rng = lambda frame: ConstantRandom(U)
     stats = [r.render_frame(0)[1]]
     ly = r.tracer.core.eager_step.layout
@@ -354,7 +353,7 @@ def test_a_carried_path_in_its_last_frame_ends_in_the_cache_at_its_next_vertex(t
     assert 1 < n_cut < 40 and r.ring.started().tolist()[:2] == [0, 0]
 
     capped = compose(hand_config(tmp_path, *long, f"renderer.training.unbiased_max_vertices={n_cut}"))
-    w = NRCRenderer(load_scene(capped.scene), capped, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
+    w = make_renderer("nrc", load_scene(capped.scene), capped, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
     w.frame_rng = lambda frame: ConstantRandom(U)
     w.render_frame(0)
     want, got = w.ring.stored(), r.ring.stored()
@@ -402,7 +401,7 @@ def test_with_a_frozen_cache_the_image_does_not_wait_for_training_paths():
         cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, *FULL, "scene=sun_sky", "scene.integrator.spp=2",
                        "renderer.training.unbiased_fraction=0.5", f"renderer.training.carry_frames={k}",
                        "renderer.backend=eager"])
-        r = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.full_like(x, 0.5)))
+        r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.full_like(x, 0.5)))
         out = [r.render_frame(f) for f in range(2)]
         images[k] = [o[0] for o in out]
         if k:
@@ -439,7 +438,7 @@ def test_the_fused_tail_writes_the_training_records_of_the_vertex_passes(monkeyp
                        "scene.volume.density_scale=3", "renderer.training.unbiased_fraction=0.5",
                        f"renderer.training.carry_frames={carry}", "renderer.backend=eager"])
         cache = StubCache(lambda x, d: torch.full_like(x, 0.5))
-        r = NRCRenderer(load_scene(cfg.scene), cfg, cache=cache)
+        r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=cache)
         run_compiled_structure_eagerly(r.tracer.core)  # shadow rays inside the step: the tail can fuse
         frames = [r.render_frame(f) for f in range(3)]
         out[slots] = ([f[0] for f in frames], cache.batches, sum(f[1].get("tail_calls", 0) for f in frames))
@@ -481,7 +480,7 @@ def test_training_queries_use_the_configured_weights(tmp_path, weights):
     for mode in ("ema", weights):
         cfg = compose([*base, f"renderer.training.query_weights={mode}"])
         cache = TwoWeightCache(c_ema, c_raw)
-        r = NRCRenderer(load_scene(cfg.scene), cfg, cache=cache)
+        r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=cache)
         r.frame_rng = lambda frame: ConstantRandom(0.3)
         image, _, _ = r.render_frame(0)
         torch.testing.assert_close(image.reshape(3), c_ema)
@@ -539,7 +538,7 @@ def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
                   "renderer.backend=eager"]
     cfg = compose(["renderer=nrc", *TRAIN, *long_paths, "frames=20", "renderer.checkpoint_every=10"])
     scene = load_scene(cfg.scene)
-    full = NRCRenderer(scene, cfg)
+    full = make_renderer("nrc", scene, cfg)
     full.attach_output(tmp_path)
 
     def keep_frame_10_checkpoint(frame, image, output, stats):
@@ -555,8 +554,9 @@ def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
     assert np.isfinite(result.image).all() and result.image.mean() > 0
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
 
-    resumed = NRCRenderer(scene, compose(["renderer=nrc", *TRAIN, *long_paths, "frames=20", "renderer.log.tensorboard=false",
-                                          f"renderer.resume={tmp_path / 'at10.pt'}"]))
+    resumed = make_renderer("nrc", scene, compose(["renderer=nrc", *TRAIN, *long_paths, "frames=20",
+                                                   "renderer.log.tensorboard=false",
+                                                   f"renderer.resume={tmp_path / 'at10.pt'}"]))
     rest = resumed.render()
     assert rest.metrics["first_frame"] == 10
     np.testing.assert_allclose(rest.metrics["loss_per_frame"], loss, rtol=1e-5)
@@ -571,7 +571,7 @@ def _overlapped(tmp_path, name, overrides, on_frame=None):
     cfg = compose(["renderer=nrc", *TRAIN, "scene.camera.width=16", "scene.camera.height=8",
                    "renderer.training.width=8", "renderer.training.height=8", "renderer.training.unbiased_fraction=0.5",
                    "renderer.backend=eager", *overrides])
-    r = NRCRenderer(load_scene(cfg.scene), cfg)
+    r = make_renderer("nrc", load_scene(cfg.scene), cfg)
     run_compiled_structure_eagerly(r.tracer.core)
     threads = []
     train_step = r.cache.train_step
@@ -637,7 +637,7 @@ def test_training_beside_the_next_trace_makes_the_same_updates(tmp_path):
 def test_bad_nrc_settings_name_the_key(override, message):
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.width=12", override])
     with pytest.raises(ConfigError) as err:
-        NRCRenderer(load_scene(cfg.scene), cfg).render()
+        make_renderer("nrc", load_scene(cfg.scene), cfg).render()
     assert message in str(err.value)
 
 
@@ -645,7 +645,7 @@ def test_orbit_and_sun_animation_rotate_about_world_up():
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun_front", "renderer.animate.mode=orbit",
                    "renderer.animate.degrees_per_frame=90"])
     scene = load_scene(cfg.scene)
-    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    r = make_renderer("nrc", scene, cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
     cam0, cam1 = r.frame_camera(0), r.frame_camera(1)
     centre = scene.grid.box.center
     rel0, rel1 = cam0.position - centre, cam1.position - centre
@@ -655,7 +655,7 @@ def test_orbit_and_sun_animation_rotate_about_world_up():
     assert r.frame_lights(1) is r.lights  # orbit leaves the lights alone
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun_front", "renderer.animate.mode=sun",
                    "renderer.animate.degrees_per_frame=180"])
-    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    r = make_renderer("nrc", scene, cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
     (sun,) = scene.lights
     turned = r.frame_lights(1).directional[0].direction
     torch.testing.assert_close(turned, sun.direction * torch.tensor([-1.0, 1.0, -1.0]), atol=1e-6, rtol=0)
@@ -701,15 +701,15 @@ def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
     assert n_box > 100 and abs(n_medium / n_box - 0.5) < 0.1
     cfg = compose([*base, "renderer.training.width=auto", "renderer.training.height=auto",
                    "renderer.training.min_paths=16", "renderer.training.paths_per_pixel=2"])
-    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, dd: torch.zeros_like(x)))
+    r = make_renderer("nrc", scene, cfg, cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     tr = r.settings.training
     assert r.medium_pixels == n_medium and abs(tr.width * tr.height / (2 * n_medium) - 1) < 0.3
     # ring_buffer: auto keeps 4 frames of records (V = records_per_path per path), at most 2^18
     assert r.ring.capacity == 4 * tr.width * tr.height * tr.records_per_path
-    big = NRCRenderer(scene, compose([*base, "renderer.training.width=128", "renderer.training.height=128"]),
+    big = make_renderer("nrc", scene, compose([*base, "renderer.training.width=128", "renderer.training.height=128"]),
                       cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     assert big.ring.capacity == 1 << 18
-    fixed = NRCRenderer(scene, compose([*base, "renderer.training.ring_buffer=1000"]),
+    fixed = make_renderer("nrc", scene, compose([*base, "renderer.training.ring_buffer=1000"]),
                         cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     assert fixed.ring.capacity == 1000
     # encoding.position.log2_hashmap_size: auto sizes the renderer's own cache to its training paths in a thick
@@ -717,12 +717,12 @@ def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
     for w, h, density, log2 in ((64, 64, 1, 16), (96, 96, 1, 17), (64, 64, 0.1, 19)):
         c = compose([*base, f"renderer.training.width={w}", f"renderer.training.height={h}",
                      f"scene.volume.density_scale={density}", "encoding.position.n_levels=2"])
-        own = NRCRenderer(load_scene(c.scene), c)
+        own = make_renderer("nrc", load_scene(c.scene), c)
         assert (own.optical_depth >= 40) == (density == 1)
         assert own.cache.log2_hashmap_size == log2
         assert own.cache.network.encoding.encodings[0].hashmap_size == 2**log2
     with pytest.raises(ConfigError, match="both be auto"):
-        NRCRenderer(scene, compose([*base, "renderer.training.width=auto", "renderer.training.height=64"]),
+        make_renderer("nrc", scene, compose([*base, "renderer.training.width=auto", "renderer.training.height=64"]),
                     cache=StubCache(lambda x, dd: torch.zeros_like(x)))
 
 
@@ -738,7 +738,7 @@ def test_spread_rule_terminates_where_the_spread_exceeds_c_a0(tmp_path, margin):
     a0 = float(((x1 - o) ** 2).sum()) / (4 * math.pi)
     spread2 = step * step / float(pdf1.reshape(-1)[0])
     cfg = compose([*base, f"renderer.termination.spread_c={margin * spread2 / a0}"])
-    r = NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
+    r = make_renderer("nrc", scene, cfg, cache=StubCache(lambda x, d: C.expand_as(x).clone()))
     r.frame_rng = lambda frame: ConstantRandom(U)
     image, _, _ = r.render_frame(0)
     at_2 = ALBEDO * hand_nee(scene, x1, d0).reshape(3) + ALBEDO * C
@@ -756,11 +756,11 @@ def test_a_resumed_run_continues_its_tensorboard_curves(tmp_path):
     base = ["renderer=nrc", *SMALL, *NRC_SMALL[:2], "scene.integrator.spp=1", "renderer.backend=eager"]
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()  # the app makes its run directory
-    first = NRCRenderer(load_scene(compose(base).scene), compose([*base, "frames=2"]))
+    first = make_renderer("nrc", load_scene(compose(base).scene), compose([*base, "frames=2"]))
     first.attach_output(tmp_path / "a")
     assert first.render().metrics["tensorboard_dir"] == str(tmp_path / "a" / "tensorboard")
     cfg = compose([*base, "frames=4", f"renderer.resume={tmp_path / 'a' / 'checkpoint.pt'}"])
-    resumed = NRCRenderer(load_scene(cfg.scene), cfg)
+    resumed = make_renderer("nrc", load_scene(cfg.scene), cfg)
     resumed.attach_output(tmp_path / "b")
     assert resumed.render().metrics["tensorboard_dir"] == str(tmp_path / "a" / "tensorboard")
     assert not (tmp_path / "b" / "tensorboard").exists()
@@ -776,7 +776,7 @@ def test_flicker_in_metrics_and_lower_when_frames_accumulate():
         cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "frames=6", "renderer.backend=eager",
                        f"renderer.accumulate={str(accumulate).lower()}"])
         scene = load_scene(cfg.scene)
-        return NRCRenderer(scene, cfg, cache=StubCache(lambda x, d: torch.full_like(x, 0.2))).render()
+        return make_renderer("nrc", scene, cfg, cache=StubCache(lambda x, d: torch.full_like(x, 0.2))).render()
 
     each, acc = run(False), run(True)
     h = each.metrics["history"]["flicker"]
@@ -798,20 +798,20 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
         fraction, tau = auto_unbiased_fraction(scene)
         assert fraction == want
         assert tau == pytest.approx(scene_optical_depth(scene).median, rel=0.25)  # on a smaller camera
-        assert auto_unbiased_fraction(scene, "sun")[0] == 0.25  # a moving light: the quarter (docs/nrc_measurements.md)
+        assert auto_unbiased_fraction(scene, "sun")[0] == 0.25  # a moving light: the quarter (docs/measurements/nrc_defaults.md)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",
                    "renderer.training.carry_frames=auto", "scene.volume.density_scale=4"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None
-    r = NRCRenderer(load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
     assert r.settings.training.unbiased_fraction == 0.5 and r.optical_depth >= 40
     assert r.settings.training.carry_frames == 4 and r.tracer.carry_frames == 4  # carry_frames=auto: thick
     grey = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",  # only where
                     "renderer.training.carry_frames=auto", "scene.volume.density_scale=4", "scene.volume.albedo=0.95"])
-    r = NRCRenderer(load_scene(grey.scene), grey, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    r = make_renderer("nrc", load_scene(grey.scene), grey, cache=StubCache(lambda x, d: torch.zeros_like(x)))
     assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 0.5
     thin = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=0.5",
                     "renderer.training.carry_frames=auto"])
-    r = NRCRenderer(load_scene(thin.scene), thin, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    r = make_renderer("nrc", load_scene(thin.scene), thin, cache=StubCache(lambda x, d: torch.zeros_like(x)))
     assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 0.25
     with pytest.raises(ConfigError, match="renderer.training.carry_frames"):
         NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.carry_frames=-1"]).renderer)
@@ -819,3 +819,43 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction == 0.1
     with pytest.raises(ConfigError, match="renderer.training.unbiased_fraction"):
         NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.unbiased_fraction=most"]).renderer)
+
+
+def test_the_renderer_takes_its_settings_read_once_with_the_auto_rules_resolved():
+    """``NRCRenderer(scene, settings)``: the typed settings, read from the config once and their ``auto`` rules
+    resolved for the scene before the renderer is built (``nrc.render.registry.renderer_settings``), hold no raw
+    config; built from them the renderer renders what ``make_renderer`` from the config renders, bitwise."""
+    import dataclasses
+
+    from omegaconf import DictConfig
+
+    from nrc.render.radiance_caching import NRCRenderer
+    from nrc.render.radiance_caching.settings import NRCRendererSettings
+    from nrc.render.registry import renderer_settings
+
+    cfg = compose(["renderer=nrc", "scene.camera.width=16", "scene.camera.height=12",
+                   "renderer.training.min_paths=16", "renderer.log.tensorboard=false", "frames=2",
+                   "cache.network.n_neurons=16", "cache.network.n_hidden_layers=1", "encoding.position.n_levels=2"])
+    raw = NRCRendererSettings.from_app_config(cfg)
+    assert not raw.resolved and raw.nrc.training.auto and raw.nrc.training.unbiased_fraction is None
+    scene = load_scene(cfg.scene)
+    settings = renderer_settings("nrc", cfg, scene)
+    tr = settings.nrc.training
+    assert settings.resolved and tr.width * tr.height >= 16 and tr.unbiased_fraction in (0.25, 0.5)
+    assert tr.carry_frames is not None and settings.regime in ("thick", "moderate") and settings.optical_depth > 0
+
+    def values(x):
+        if dataclasses.is_dataclass(x) and not isinstance(x, type):
+            for f in dataclasses.fields(x):
+                yield from values(getattr(x, f.name))
+        elif isinstance(x, dict):
+            for v in x.values():
+                yield from values(v)
+        yield x
+
+    assert not any(isinstance(v, DictConfig) for v in values(settings))
+    a = NRCRenderer(scene, settings).render()
+    b = make_renderer("nrc", scene, cfg).render()
+    np.testing.assert_array_equal(a.image, b.image)
+    assert a.metrics["loss_per_frame"] == b.metrics["loss_per_frame"]
+    assert a.metrics["unbiased_fraction"] == tr.unbiased_fraction

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from conftest import compose
-from nrc.render.pt import PathTracer
+from nrc.render.registry import make_renderer
 from nrc.scene import load_scene
 from nrc.volume.grid import DensityGrid
 
@@ -21,7 +21,7 @@ def make(overrides, density=None):
         v = cfg.scene.volume
         grid = DensityGrid(density, tuple(v.center), v.diagonal, v.density_scale)
         scene = type(scene)(grid, scene.albedo, scene.g, scene.camera, scene.lights, scene.integrator)
-    return PathTracer(scene, cfg), scene
+    return make_renderer("pt", scene, cfg), scene
 
 
 def pixel_transmittance(scene, n_jitter=256, n_steps=512):
@@ -182,7 +182,7 @@ def test_power_light_selection_agrees_with_uniform(structure):
         for seed in range(8):
             cfg = compose(["renderer=pt", *THREE_LIGHTS, f"renderer.light_selection={selection}",
                            f"scene.integrator.seed={seed}", "renderer.backend=eager"])
-            tracer = PathTracer(load_scene(cfg.scene), cfg)
+            tracer = make_renderer("pt", load_scene(cfg.scene), cfg)
             if structure == "step":
                 tracer.core.backend, tracer.core.eager_step = "eager", tracer.core.step
             out.append(tracer.render().image)
@@ -191,5 +191,5 @@ def test_power_light_selection_agrees_with_uniform(structure):
     power = images("power")
     assert_images_agree(power, images("uniform"))
     cfg = compose(["renderer=pt", *THREE_LIGHTS, "renderer.light_selection=power"])
-    pmf = PathTracer(load_scene(cfg.scene), cfg).lights.pmf
+    pmf = make_renderer("pt", load_scene(cfg.scene), cfg).lights.pmf
     assert pmf[0] > pmf[2] > pmf[1] > 0 and abs(sum(pmf) - 1) < 1e-6  # sun (0.65), sky (0.25), point light (0.10)

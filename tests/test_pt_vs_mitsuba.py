@@ -5,6 +5,7 @@ import pytest
 
 from conftest import assert_images_agree, compose, hollow_lantern
 from nrc.render.pt import PathTracer
+from nrc.render.registry import make_renderer
 from nrc.scene import load_scene
 
 mitsuba_bridge = pytest.importorskip("nrc.evaluation.mitsuba_bridge")
@@ -89,7 +90,7 @@ def compare_with_mitsuba(extra: list[str], preset: str, render=lambda tracer: tr
     for seed in range(seeds):
         cfg = compose([*overrides, f"scene.integrator.seed={seed}"])
         scene = load_scene(cfg.scene)
-        ours.append(render(PathTracer(scene, cfg)).image)
+        ours.append(render(make_renderer("pt", scene, cfg)).image)
         theirs.append(mitsuba_bridge.render_mitsuba(scene, seed=seed)[0])
     assert_images_agree(ours, theirs)
     mean_a, mean_b = (np.mean([im.mean() for im in ims]) for ims in (ours, theirs))

@@ -74,7 +74,7 @@ def test_readme_command_runs_at_a_tiny_size(args, tmp_path):
     sweep = "-m" in args
     where = f"hydra.sweep.dir={tmp_path / 'sweep'}" if sweep else f"hydra.run.dir={tmp_path / 'run'}"
     # a sweep: eager (the launching process would compile the step for the workers first, minutes: that build is
-    # tested in tests/test_sweeps.py and timed in docs/benchmarks.md)
+    # tested in tests/test_sweeps.py and timed in docs/measurements/speed.md)
     extra = ["renderer.backend=eager"] if sweep else []
     proc = subprocess.run([sys.executable, "-m", "nrc", *args, *TINY, *extra, where], cwd=REPO, capture_output=True,
                           text=True, timeout=600)

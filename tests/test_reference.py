@@ -1,4 +1,4 @@
-"""Chunked, resumable reference renders (``nrc.evaluation.reference`` / ``scripts/render_reference.py``)."""
+"""Chunked, resumable reference renders (``nrc.evaluation.reference``; the app: ``nrc.reference_app``)."""
 
 from __future__ import annotations
 
@@ -9,19 +9,18 @@ from conftest import compose
 from nrc.errors import ConfigError, NRCError
 from nrc.io import read_exr
 from nrc.metrics import medium_mask
-from nrc.render.pt import PathTracer
+from nrc.config import config_hash, scene_hash
+from nrc.render.preview import medium_alpha
+from nrc.render.registry import make_renderer
 from nrc.evaluation.reference import (
     REF_SEED,
     REF_SEEDS_PER_BASE,
     check_independent,
     checkpoint_path,
-    config_hash,
-    medium_alpha,
     read_reference,
     reference_base_seed,
     reference_seed_range,
     render_reference,
-    scene_hash,
 )
 from nrc.scene import load_scene
 
@@ -54,7 +53,7 @@ def test_reference_is_the_mean_of_chunks_with_consecutive_seeds(full):
     chunks = []
     for i in range(TOTAL // CHUNK):
         cfg.scene.integrator.seed = reference_base_seed(3) + i
-        chunks.append(PathTracer(load_scene(cfg.scene), cfg).render().image.astype(np.float64))
+        chunks.append(make_renderer("pt", load_scene(cfg.scene), cfg).render().image.astype(np.float64))
     np.testing.assert_allclose(full[0], np.mean(chunks, axis=0), rtol=1e-6, atol=1e-7)
     assert full[0].mean() > 0
     # the header's noise floor: mean over pixels of Var(chunk) / n_chunks / (r^2 + 0.01)

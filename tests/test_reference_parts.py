@@ -231,3 +231,18 @@ def test_a_reference_of_16_chunks_as_4_jobs_equals_one_process(one_process_16, t
     np.testing.assert_array_max_ulp(b.image, a.image, maxulp=1)
     print(f"{launcher}: largest difference {np.abs(b.image - a.image).max():.3g}, "
           f"{int((b.image != a.image).sum())} of {a.image.size} values differ")
+
+
+def test_ensure_reference_renders_once_and_returns_the_path(tmp_path, monkeypatch):
+    """``nrc.reference_app.ensure_reference`` (what the lab's tools call): the default path under the working
+    directory, rendered when missing, returned as it is when present."""
+    from nrc.reference_app import ensure_reference
+
+    monkeypatch.delenv("NRC_REFERENCE_DIR", raising=False)
+    monkeypatch.chdir(tmp_path)
+    overrides = ["renderer=pt", "scene.volume.procedural.resolution=16", "scene.camera.width=6",
+                 "scene.camera.height=4"]
+    path = ensure_reference(overrides, 8, 4)
+    assert path.parent == tmp_path / "data" / "references" and read_reference(path).attrs["spp"] == 8
+    stamp = path.stat().st_mtime_ns
+    assert ensure_reference(overrides, 8, 4) == path and path.stat().st_mtime_ns == stamp

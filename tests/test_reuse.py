@@ -13,13 +13,14 @@ import torch
 from conftest import assert_images_agree, compose
 from nrc.camera import Camera
 from nrc.errors import ConfigError
-from nrc.render.pt import PathTracer, PathTracerSettings
-from nrc.render.radiance_caching import NRCRenderer
+from nrc.render.pt import PathTracerSettings
+from nrc.render.registry import make_renderer
 from nrc.render.reuse import (DistanceReuse, ExtinctionTable, ReservoirReuse, Reservoirs, ReuseSettings,
                               VertexRecord)
-from nrc.render.reuse import reservoirs as reuse_module
+from nrc.render.reuse import extinction
 from nrc.scene import load_scene
-from nrc.transport.light_sampling import LightSampler, luminance3
+from nrc.transport.light_sampling import LightSampler
+from nrc.transport.lights import luminance3
 from nrc.transport.phase import hg_pdf
 
 SMALL = ["scene.volume.procedural.resolution=24", "scene.camera.width=40", "scene.camera.height=24"]
@@ -202,7 +203,7 @@ def test_distance_reuse_is_unbiased_against_quadrature(mode, monkeypatch):
     the target's coarse transmittance then stays near the stub's 1 (a target far from the integrand is
     unbiased too, but its heavy tail would need far more seeds)."""
     # the shading's two transmittance estimates are 1 here (their own unbiasedness is tested below)
-    monkeypatch.setattr(reuse_module._Table, "transmittance", lambda self, grid, t, points, gen: torch.ones_like(t))
+    monkeypatch.setattr(extinction._Table, "transmittance", lambda self, grid, t, points, gen: torch.ones_like(t))
     cfg = compose(["scene=many_lights", *SMALL, "scene.volume.density_scale=0.02"])
     scene = load_scene(cfg.scene)
     lights = LightSampler.for_scene(scene, "ris", 4)
@@ -236,7 +237,7 @@ def test_table_transmittance_is_unbiased_and_far_less_noisy_than_ratio_tracking(
     ray matches ``exp(-tau)`` by a 4096-step quadrature within 4.5 standard errors on every ray and on average,
     whether the table resolves the grid (64 steps) or not (16 steps: unbiased for any table); with 64 steps its
     variance is below a fifth of ratio tracking's on the same segments."""
-    from nrc.render.pt import PathTracer
+    from nrc.render.registry import make_renderer
 
     cfg = compose(["renderer=pt", "scene=many_lights", *SMALL])
     scene = load_scene(cfg.scene)
@@ -259,7 +260,7 @@ def test_table_transmittance_is_unbiased_and_far_less_noisy_than_ratio_tracking(
     z = (est.mean(0) - exact) / (est.std(0) / math.sqrt(reps)).clamp(min=1e-7)
     assert float(z.abs().max()) < 4.5 and abs(float(z.mean())) < 4.5 / math.sqrt(len(z)) * 2
     if steps == 64:
-        pt = PathTracer(scene, cfg)
+        pt = make_renderer("pt", scene, cfg)
         ratio = pt.transmittance(grid, pt.majorants, o.repeat(reps, 1), d.repeat(reps, 1), ta.repeat(reps),
                                  t.repeat(reps), gen).view(reps, -1)
         assert float(est.var(0).sum()) < 0.2 * float(ratio.var(0).sum())
@@ -354,7 +355,7 @@ def _renders(extra: list[str], seeds: int = 4, first: int = 0) -> list[np.ndarra
     out = []
     for seed in range(first, first + seeds):
         cfg = compose([*TINY, *extra, f"scene.integrator.seed={seed}"])
-        out.append(PathTracer(load_scene(cfg.scene), cfg).render().image)
+        out.append(make_renderer("pt", load_scene(cfg.scene), cfg).render().image)
     return out
 
 
@@ -392,7 +393,7 @@ def test_compiled_step_structure_with_distance_reuse_agrees_with_the_eager_step(
             cfg = compose([*TINY, "scene=sun_sky", "renderer.reuse.mode=spatial", "renderer.reuse.neighbors=0",
                            "renderer.reuse.domain=distance", "scene.integrator.spp=16",
                            f"scene.integrator.seed={seed}"])
-            pt = PathTracer(load_scene(cfg.scene), cfg)
+            pt = make_renderer("pt", load_scene(cfg.scene), cfg)
             if structure:
                 assert pt.core.step is not pt.core.eager_step  # shadow rays inside the step: other code
                 assert ("reuse", 1, "light_only") in pt.core.step.program.structure
@@ -416,7 +417,7 @@ def test_nrc_with_reuse_logs_its_counters_and_resumes_exactly(tmp_path, domain):
     resumed from the frame-3 checkpoint (which holds the reservoirs) ends with the same image."""
     cfg = compose([*NRC_TINY, "frames=6", "renderer.checkpoint_every=3", f"renderer.reuse.domain={domain}"])
     scene = load_scene(cfg.scene)
-    full = NRCRenderer(scene, cfg)
+    full = make_renderer("nrc", scene, cfg)
     full.attach_output(tmp_path)
 
     def keep(frame, image, output, stats):
@@ -434,7 +435,7 @@ def test_nrc_with_reuse_logs_its_counters_and_resumes_exactly(tmp_path, domain):
     ev = EventAccumulator(str(next((tmp_path / "tensorboard").iterdir()).parent))
     ev.Reload()
     assert "reuse/mean_m" in ev.Tags()["scalars"] and "reuse/temporal_accept" in ev.Tags()["scalars"]
-    resumed = NRCRenderer(scene, compose([*NRC_TINY, "frames=6", "renderer.log.tensorboard=false",
+    resumed = make_renderer("nrc", scene, compose([*NRC_TINY, "frames=6", "renderer.log.tensorboard=false",
                                           f"renderer.reuse.domain={domain}", f"renderer.resume={tmp_path / 'at3.pt'}"]))
     rest = resumed.render()
     np.testing.assert_allclose(rest.image, result.image, rtol=1e-5, atol=1e-6)
@@ -446,7 +447,7 @@ def test_reuse_with_no_light_left_to_sample_adds_nothing_and_runs():
     cfg = compose([*TINY, "scene=point", "scene.volume.density_scale=0.05", "renderer.point_light_sampling=equiangular",
                    "renderer.reuse.mode=spatial",
                    "scene.integrator.spp=2"])
-    res = PathTracer(load_scene(cfg.scene), cfg).render()
+    res = make_renderer("pt", load_scene(cfg.scene), cfg).render()
     assert np.isfinite(res.image).all() and res.image.mean() > 0
     assert res.metrics["nee_lights"] == 0 and res.metrics["reuse_vertices"] > 0
 

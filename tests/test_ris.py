@@ -6,9 +6,10 @@ import math
 import pytest
 import torch
 
-from nrc.transport.light_sampling import LightSampler, LightTable, resample
+from nrc.transport.light_sampling import LightSampler, LightTable
 from nrc.transport.lights import DirectionalLight, EnvironmentLight, PointLight
 from nrc.transport.phase import hg_pdf
+from nrc.transport.ris import resample
 
 LO, HI = -torch.ones(3), torch.ones(3)
 G = 0.6
@@ -128,7 +129,7 @@ def test_ris_under_a_latlong_map_is_unbiased():
     th = (torch.arange(m) + 0.5) / m * math.pi
     ph = (torch.arange(2 * m) + 0.5) / (2 * m) * 2 * math.pi
     tt, pp = torch.meshgrid(th, ph, indexing="ij")
-    from nrc.transport.light_sampling import latlong_to_direction
+    from nrc.transport.environment import latlong_to_direction
 
     dirs = latlong_to_direction((pp / (2 * math.pi)).reshape(-1), (tt / math.pi).reshape(-1))
     emap = ls.env_maps[0]

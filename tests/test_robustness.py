@@ -14,7 +14,7 @@ import torch
 from conftest import REPO, compose
 from nrc.errors import ConfigError, NRCError
 from nrc.io import read_exr
-from nrc.render.radiance_caching import NRCRenderer
+from nrc.render.registry import make_renderer
 from nrc.render.radiance_caching.checkpoint import CheckpointError, config_differences, load_checkpoint
 from nrc.scene import load_scene
 
@@ -26,7 +26,7 @@ TINY = ["renderer=nrc", "scene.volume.procedural.resolution=16", "scene.camera.w
 
 def nrc(out_dir, *overrides, frames=3):
     cfg = compose([*TINY, f"frames={frames}", *overrides])
-    r = NRCRenderer(load_scene(cfg.scene), cfg)
+    r = make_renderer("nrc", load_scene(cfg.scene), cfg)
     if out_dir is not None:
         r.attach_output(out_dir)
     return r

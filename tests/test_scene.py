@@ -158,7 +158,7 @@ def test_thick_presets_load_and_render_a_few_pixels(preset, request):
     (docs/scenes.md), and a few path-traced pixels that are finite and lit."""
     import numpy as np
 
-    from nrc.render.pt import PathTracer
+    from nrc.render.registry import make_renderer
     from nrc.volume.optical_depth import scene_optical_depth
 
     ovs = [f"scene={preset}", "scene.camera.width=8", "scene.camera.height=5", "scene.integrator.spp=2",
@@ -172,7 +172,7 @@ def test_thick_presets_load_and_render_a_few_pixels(preset, request):
     assert (scene.albedo, scene.g, scene.integrator.max_scatter) == (0.99, 0.85, 512)
     assert [type(light) for light in scene.lights] == [DirectionalLight, EnvironmentLight]
     assert scene_optical_depth(scene).median > 40  # the thick regime (the moderate presets: 3-17)
-    image = PathTracer(scene, cfg).render().image
+    image = make_renderer("pt", scene, cfg).render().image
     assert np.isfinite(image).all() and image.mean() > 0
 
 
@@ -208,7 +208,7 @@ def test_animated_scene_turns_the_camera_or_the_suns():
 def test_scene_types_of_the_scripts_are_presets(preset, density, g, kinds, shared_vdb):
     """The scene types the benchmark scripts name (`--preset side_lit`) are files of conf/scene/ on the Disney
     cloud; the scripts' preset() is `scene=<name>`."""
-    from nrc.evaluation.speed_vs_error import PRESETS, preset as overrides
+    from nrc.config import PRESETS, preset as overrides
 
     assert preset in PRESETS and overrides(preset) == [f"scene={preset}"]
     cfg = compose([*overrides(preset), f"scene.volume.path={shared_vdb}", "scene.camera.width=8",

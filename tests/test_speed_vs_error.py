@@ -1,6 +1,5 @@
-"""The speed-versus-error analysis (:mod:`nrc.evaluation.speed_vs_error`, the library behind
-``scripts/speed_vs_error.py``): Pareto front, interpolation, ratios, crossovers, and a smoke run on a tiny
-procedural scene (both modes, two configurations)."""
+"""Speed versus error (``scripts/speed_vs_error.py``, its analysis in ``scripts/lab/analysis.py``): Pareto front,
+interpolation, ratios, crossovers, and a smoke run on a tiny procedural scene (both modes, two configurations)."""
 
 from __future__ import annotations
 
@@ -10,7 +9,7 @@ import json
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, load_script
 
 TINY = [
     "scene.volume.procedural.resolution=16", "scene.camera.width=16", "scene.camera.height=9",
@@ -19,37 +18,35 @@ TINY = [
 
 
 @pytest.fixture(scope="module")
-def sve():
-    from nrc.evaluation import speed_vs_error
+def an():
+    """The equal-time analysis the lab's tools share (scripts/lab/analysis.py)."""
+    from lab import analysis
 
-    return speed_vs_error
+    return analysis
 
 
 @pytest.fixture(scope="module")
 def cli():
     """scripts/speed_vs_error.py, the command line."""
-    spec = importlib.util.spec_from_file_location("speed_vs_error_cli", REPO / "scripts" / "speed_vs_error.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("speed_vs_error")
 
 
 def nrc_available() -> bool:
     return (REPO / "conf" / "renderer" / "nrc.yaml").is_file()
 
 
-def test_pareto_and_loglog_interpolation(sve):
+def test_pareto_and_loglog_interpolation(an):
     # a flat-time pt curve: 2 spp is no slower than 1 spp, so 1 spp leaves the front
-    assert sve.pareto([(1.0, 4.0), (0.9, 2.0), (2.0, 1.0), (2.5, 1.5)]) == [(0.9, 2.0), (2.0, 1.0)]
+    assert an.pareto([(1.0, 4.0), (0.9, 2.0), (2.0, 1.0), (2.5, 1.5)]) == [(0.9, 2.0), (2.0, 1.0)]
     # a point above the log-log line between its neighbours is not on the front
-    assert sve.pareto([(1.0, 8.0), (2.0, 7.9), (4.0, 1.0), (8.0, 0.6)]) == [(1.0, 8.0), (4.0, 1.0), (8.0, 0.6)]
+    assert an.pareto([(1.0, 8.0), (2.0, 7.9), (4.0, 1.0), (8.0, 0.6)]) == [(1.0, 8.0), (4.0, 1.0), (8.0, 0.6)]
     ts, es = [1.0, 4.0], [1.0, 0.25]
-    assert sve.loglog_interp(2.0, ts, es) == pytest.approx(0.5)
-    assert sve.loglog_interp(8.0, ts, es) == pytest.approx(0.125)  # slope -1 beyond the end
-    assert sve.loglog_interp(0.5, ts, es) == pytest.approx(1.0)  # flat before the fastest point
+    assert an.loglog_interp(2.0, ts, es) == pytest.approx(0.5)
+    assert an.loglog_interp(8.0, ts, es) == pytest.approx(0.125)  # slope -1 beyond the end
+    assert an.loglog_interp(0.5, ts, es) == pytest.approx(1.0)  # flat before the fastest point
 
 
-def test_equal_time_ratio_and_crossover(sve):
+def test_equal_time_ratio_and_crossover(an):
     pt = [{"mode": m, "config": "pt", "renderer": "pt", "spp": 1, "frames": n, "time_s": float(n),
            "rel_mse": 1.0 / n, "rel_mse_medium": 2.0 / n} for m in ("single", "accumulate") for n in (1, 2, 4, 8)]
     # NRC: at t = 2 half of pt's error; accumulated, a bias floor of 0.3 (medium) that pt undercuts after t = 6.67
@@ -57,21 +54,21 @@ def test_equal_time_ratio_and_crossover(sve):
             "rel_mse": 0.25, "rel_mse_medium": 0.5}]
     nrc += [{"mode": "accumulate", "config": "nrc", "renderer": "nrc", "spp": 1, "frames": n, "time_s": float(n),
              "rel_mse": 0.15, "rel_mse_medium": 0.3} for n in (1, 2, 4, 8)]
-    (q,) = sve.equal_time_ratios(pt + nrc, "pt")
+    (q,) = an.equal_time_ratios(pt + nrc, "pt")
     assert q["ratio_rel_mse"] == pytest.approx(0.5) and q["ratio_rel_mse_medium"] == pytest.approx(0.5)
     assert not q["extrapolated"]
-    (c,) = sve.crossovers(pt + nrc, "pt")
+    (c,) = an.crossovers(pt + nrc, "pt")
     assert c["metric"] == "rel_mse_medium" and c["pt_better_at_end"]
     assert 4.0 < c["crossover_time_s"] < 8.0 and not c["crossover_at_or_before"]
     # pt's first frame comes after NRC's first and already beats NRC at that time: "at or before" it, never
     # earlier (no pt image exists before its first frame)
     late_pt = [{**r, "time_s": r["time_s"] + 2.0, "rel_mse_medium": 0.01} for r in pt if r["mode"] == "accumulate"]
-    (c,) = sve.crossovers(late_pt + nrc, "pt")
+    (c,) = an.crossovers(late_pt + nrc, "pt")
     assert c["crossover_time_s"] == 3.0 and c["crossover_at_or_before"]
 
 
 @pytest.mark.slow
-def test_smoke_two_configs_both_modes(sve, cli, tmp_path):
+def test_smoke_two_configs_both_modes(cli, tmp_path):
     second = ("nrc_tiny=renderer=nrc,encoding=triangle_oneblob,renderer.training.width=8,renderer.training.height=8,"
               "cache.network.n_neurons=16,cache.network.n_hidden_layers=2") if nrc_available() else \
         "pt_track=renderer=pt,transmittance=track_length"
@@ -121,7 +118,7 @@ def test_smoke_two_configs_both_modes(sve, cli, tmp_path):
 
 
 @pytest.mark.slow
-def test_denoised_twins_and_both_baselines(sve, cli, tmp_path):
+def test_denoised_twins_and_both_baselines(cli, tmp_path):
     """--denoise: every single-frame configuration and every accumulated point gets a `+oidn` twin whose time
     includes the denoise time, and NRC is compared with both the raw and the denoised path tracer (equal-time
     ratios and crossovers); every row has its HDR-FLIP."""
@@ -158,27 +155,27 @@ def test_denoised_twins_and_both_baselines(sve, cli, tmp_path):
     assert "| nrc_tiny+oidn | pt+oidn |" in md and "mean / reference, medium" in md
 
 
-def test_equal_time_front_is_flat_where_more_time_did_not_help(sve):
+def test_equal_time_front_is_flat_where_more_time_did_not_help(an):
     """A denoised path tracer that is worse at 16 spp than at 4: at a time between the two the baseline is the
     4-spp error (a user would stop there), not an extrapolation below it."""
     base = [{"mode": "single", "config": "pt", "renderer": "pt", "spp": s, "time_s": t, "rel_mse": e}
             for s, t, e in ((1, 0.3, 0.004), (4, 0.5, 0.002), (16, 1.0, 0.006))]
     nrc = {"mode": "single", "config": "nrc", "renderer": "nrc", "spp": 1, "time_s": 0.8, "rel_mse": 0.01}
-    (q,) = sve.equal_time_ratios(base + [nrc], "pt")
+    (q,) = an.equal_time_ratios(base + [nrc], "pt")
     assert q["pt_rel_mse"] == pytest.approx(0.002) and q["ratio_rel_mse"] == pytest.approx(5.0)
     assert not q["extrapolated"]
-    (q,) = sve.equal_time_ratios(base + [{**nrc, "time_s": 2.0}], "pt")  # beyond every measured frame: ~ 1/time
+    (q,) = an.equal_time_ratios(base + [{**nrc, "time_s": 2.0}], "pt")  # beyond every measured frame: ~ 1/time
     assert q["extrapolated"] and q["pt_rel_mse"] == pytest.approx(0.002 * 0.5 / 2.0)
 
 
 @pytest.mark.slow
 def test_animation_whole_run_smoke(tmp_path):
-    """scripts/bench_animation.py's library on a tiny scene: all frames rendered, every k-th scored against its own
+    """scripts/bench_animation.py on a tiny scene: all frames rendered, every k-th scored against its own
     reference (a sun that turns changes the reference), whole-run times and the path tracer's error at NRC's time."""
-    from nrc.evaluation import animation
+    bench = load_script("bench_animation")
 
     tiny = [*TINY, "scene=sun_sky", "renderer.backend=eager"]
-    res = animation.animation(tiny, {"nrc": ["encoding=triangle_oneblob", "cache.network.n_neurons=16",
+    res = bench.animation(tiny, {"nrc": ["encoding=triangle_oneblob", "cache.network.n_neurons=16",
                                               "cache.network.n_hidden_layers=2", "renderer.training.width=8",
                                               "renderer.training.height=8"]},
                               [1, 2], frames=4, score_every=2, mode="sun", ref_spp=16, ref_chunk=8,
@@ -191,35 +188,35 @@ def test_animation_whole_run_smoke(tmp_path):
         assert r["rel_mse_medium"] > 0 and 0 < r["mean_ratio_medium"] < 10
     assert pt2["rel_mse_medium"] < pt1["rel_mse_medium"] * 1.5
     assert nrc["ratio_vs_pt"] == pytest.approx(nrc["rel_mse_medium"] / nrc["pt_rel_mse_medium"])
-    assert "whole run" in animation.markdown(res)
+    assert "whole run" in bench.markdown(res)
 
 
-def test_checkpoints_end_at_the_last_frame_and_accumulated_ratios(sve):
-    assert sve.checkpoints(8) == [1, 2, 4, 8] and sve.checkpoints(30) == [1, 2, 4, 8, 16, 30]
+def test_checkpoints_end_at_the_last_frame_and_accumulated_ratios(an, cli):
+    assert cli.checkpoints(8) == [1, 2, 4, 8] and cli.checkpoints(30) == [1, 2, 4, 8, 16, 30]
     pt = [{"mode": "accumulate", "config": "pt", "renderer": "pt", "spp": 16, "frames": n, "time_s": 2.0 * n,
            "rel_mse": 1.0 / n} for n in (1, 2, 4, 8)]
     nrc = [{"mode": "accumulate", "config": "nrc", "renderer": "nrc", "spp": 1, "frames": 30, "time_s": 4.0,
             "rel_mse": 0.25}]
-    assert sve.equal_time_ratios(pt + nrc, "pt") == []  # single frames only by default
-    (q,) = sve.equal_time_ratios(pt + nrc, "pt", mode="accumulate")
+    assert an.equal_time_ratios(pt + nrc, "pt") == []  # single frames only by default
+    (q,) = an.equal_time_ratios(pt + nrc, "pt", mode="accumulate")
     assert (q["mode"], q["frames"]) == ("accumulate", 30)
     assert q["pt_rel_mse"] == pytest.approx(0.5) and q["ratio_rel_mse"] == pytest.approx(0.5)
-    assert [q["mode"] for q in sve.all_ratios(pt + nrc, ["pt"])] == ["accumulate"]
+    assert [q["mode"] for q in an.all_ratios(pt + nrc, ["pt"])] == ["accumulate"]
 
 
-def test_since_process_start_counts_the_imports(sve):
-    t = sve.since_process_start()
+def test_since_process_start_counts_the_imports(cli):
+    t = cli.since_process_start()
     assert 0 < t < 24 * 3600  # this process started before the test (its imports take a while)
 
 
-def test_jobs_arguments_are_stripped_from_the_jobs_command(sve):
+def test_jobs_arguments_are_stripped_from_the_jobs_command(cli):
     argv = ["--out", "o", "--jobs", "slurm", "--slurm", "partition=cpu", "--slurm=mem_gb=4", "--jobs=local", "x=1"]
-    assert sve._without_jobs(argv) == ["--out", "o", "x=1"]
-    assert sve.part_path("o", "pt") == __import__("pathlib").Path("o/configs/pt.json")
+    assert cli._without_jobs(argv) == ["--out", "o", "x=1"]
+    assert cli.part_path("o", "pt") == __import__("pathlib").Path("o/configs/pt.json")
 
 
 @pytest.mark.slow
-def test_configurations_as_local_jobs_merge_like_one_process(sve, cli, tmp_path):
+def test_configurations_as_local_jobs_merge_like_one_process(cli, tmp_path):
     """--jobs local: each configuration a submitit job writing its rows; the merge writes the tables of one
     process (both configurations, ratios against the path tracer), a configuration's rows are not re-run, and rows
     of another machine type are refused."""

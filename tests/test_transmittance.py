@@ -304,7 +304,7 @@ def test_a_new_estimator_is_one_file_and_one_yaml(tmp_path, monkeypatch):
     reproduces ratio tracking's image exactly (the same draws on the queued shadow rays), factor 0 leaves the
     environment alone."""
     from nrc.config import compose
-    from nrc.render.pt import PathTracer
+    from nrc.render.registry import make_renderer
     from nrc.scene import load_scene
 
     (tmp_path / "plugin_estimator.py").write_text(PLUGIN)
@@ -317,7 +317,7 @@ def test_a_new_estimator_is_one_file_and_one_yaml(tmp_path, monkeypatch):
     def render(transmittance):
         cfg = compose(small)
         cfg.transmittance = transmittance
-        return PathTracer(load_scene(cfg.scene), cfg).render().image
+        return make_renderer("pt", load_scene(cfg.scene), cfg).render().image
 
     plugin = OmegaConf.load(tmp_path / "scaled_ratio.yaml")
     try:

@@ -7,7 +7,7 @@ i.e. ``wd * w`` added to the gradient) applies to the MLP weights only.
 One difference from tiny-cuda-nn: its Adam skips hash-table entries whose gradient is exactly 0 (no moment decay,
 no update, a step count per entry); ``torch.optim.Adam`` here updates every entry each step, so the momentum of an
 entry no batch touched keeps moving it. The defaults (hash-table lr 3e-4, the EMA) were measured with this dense
-update; a lazy one would need them measured again (docs/benchmarks.md, "A cheaper training step").
+update; a lazy one would need them measured again (docs/measurements/nrc_frames.md, "A cheaper training step").
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ Keys (all validated; unknown keys are errors):
 * ``query_chunk``: points per forward pass in :meth:`RadianceCache.query` (bounds memory).
 * ``compile_training``: ``torch.compile`` the training step's forward, loss and backward (dynamic batch size;
   the fused Adam step is already one kernel). Off by default: on the CPU it measured no faster than eager
-  (``docs/benchmarks.md``, "Frames bounded by work") and costs a ~30 s compile on a cold cache.
+  (``docs/measurements/nrc_frames.md``, "Frames bounded by work") and costs a ~30 s compile on a cold cache.
 """
 
 from __future__ import annotations

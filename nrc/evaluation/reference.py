@@ -5,12 +5,12 @@ A reference of ``total_spp`` samples per pixel is the mean of ``total_spp / chun
 chunk the running sum (float64) is checkpointed to ``<out>.ckpt.npz`` (written atomically), so a killed
 run resumes where it stopped and produces bitwise the same image as an uninterrupted run (on the same
 device). The final EXR carries header attributes ``spp`` (int), ``seed`` (base seed, int),
-``config_hash`` (see :func:`config_hash`) and ``scene_hash`` (see :func:`scene_hash`); the checkpoint is
-then deleted.
+``config_hash`` (:func:`nrc.config.config_hash`) and ``scene_hash`` (:func:`nrc.config.scene_hash`); the
+checkpoint is then deleted.
 
 The EXR also stores the **medium mask** as its ``A`` channel: ``alpha = 1 - T``, the transmittance ``T``
 of the camera rays through the medium (no scattering; pixel centres, midpoint quadrature with one-voxel
-steps). ``nrc.metrics.medium_mask(alpha)`` turns it into the
+steps; :func:`nrc.render.preview.medium_alpha`). ``nrc.metrics.medium_mask(alpha)`` turns it into the
 pixel set "where the reference sees the medium". :func:`read_reference` returns image, alpha and header.
 
 **The reference's own noise.** The checkpoint also accumulates the per-pixel sum of squares of the
@@ -23,10 +23,7 @@ Var(r_hat) / (r_hat^2 + 0.01)``, stored in the header (``rel_mse_floor`` over al
 
 from __future__ import annotations
 
-import copy
 import dataclasses
-import hashlib
-import json
 import os
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -35,50 +32,16 @@ from typing import Any
 import numpy as np
 import OpenEXR
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm import tqdm
 
-from nrc.config import resolve_device
+from nrc.config import config_hash, resolve_device, scene_hash
 from nrc.errors import ConfigError, NRCError
 from nrc.io import read_exr, write_exr
 from nrc.io.atomic import write_atomically
-from nrc.render.preview import camera_transmittance
-from nrc.render.pt import PathTracer
+from nrc.render.preview import medium_alpha
+from nrc.render.registry import make_renderer
 from nrc.scene import Scene, load_scene
-
-HASHED_SECTIONS = ("scene", "renderer", "transmittance")
-CHUNKED_KEYS = ("spp", "seed")  # scene.integrator keys that chunking changes: not hashed
-
-
-def config_hash(cfg: DictConfig) -> str:
-    """sha256 (hex) of the resolved ``scene``, ``renderer`` and ``transmittance`` sections.
-
-    ``scene.integrator.spp`` and ``scene.integrator.seed`` are excluded (chunking changes them); keys are
-    sorted, so the hash depends on values only, not on the order of overrides.
-    """
-    sections = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in HASHED_SECTIONS if k in cfg}
-    sections = copy.deepcopy(sections)
-    for key in CHUNKED_KEYS:
-        sections["scene"].get("integrator", {}).pop(key, None)
-    text = json.dumps(sections, sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(text.encode()).hexdigest()
-
-
-def scene_hash(cfg: DictConfig) -> str:
-    """sha256 (hex) of the resolved ``scene`` section alone, without ``integrator.spp`` and ``integrator.seed``.
-
-    Every unbiased estimator (any ``pt`` backend, any unbiased transmittance estimator) converges to the
-    same image, so a reference is valid for every config with the same scene hash.
-    """
-    scene = copy.deepcopy(OmegaConf.to_container(cfg.scene, resolve=True))
-    for key in CHUNKED_KEYS:
-        scene.get("integrator", {}).pop(key, None)
-    # file paths: one spelling per file ("/a/b/../c" and "/a/c" are the same volume)
-    for item in [scene.get("volume") or {}, *(scene.get("lights") or [])]:
-        if item.get("path"):
-            item["path"] = os.path.realpath(item["path"])
-    return hashlib.sha256(json.dumps(scene, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
-
 
 @dataclasses.dataclass
 class Reference:
@@ -97,22 +60,6 @@ class Reference:
     def rel_mse_floor_medium(self) -> float | None:
         v = self.attrs.get("rel_mse_floor_medium")
         return None if v is None or v < 0 else float(v)
-
-
-def medium_alpha(scene: Scene, chunk: int = 1 << 16) -> np.ndarray:
-    """``(H, W)`` float32 ``1 - T`` of the camera rays through the pixel centres (no scattering).
-
-    ``T`` by midpoint quadrature with one-voxel steps: cheap (a few seconds at 480 x 270 on a quiet
-    machine) and plenty for a mask of "pixels where the medium is seen".
-    """
-    cam, dev = scene.camera, scene.device
-    alpha = torch.zeros(cam.num_pixels, dtype=torch.float32, device=dev)
-    with torch.no_grad():
-        for s in range(0, cam.num_pixels, chunk):
-            pix = torch.arange(s, min(s + chunk, cam.num_pixels), device=dev)
-            o, d = cam.generate_rays(pix, torch.full((len(pix), 2), 0.5, device=dev))
-            alpha[pix] = 1.0 - camera_transmittance(scene, o, d, scene.grid.voxel_size)
-    return alpha.reshape(cam.height, cam.width).cpu().numpy().clip(0.0, 1.0)
 
 
 def write_reference_exr(path: str | Path, image: np.ndarray, alpha: np.ndarray | None, attrs: dict) -> None:
@@ -193,7 +140,7 @@ def _render_chunk(scene: Scene, cfg: DictConfig, chunk_spp: int, seed: int) -> n
     """One ``pt`` render of ``chunk_spp`` spp with ``seed``, as float64."""
     integ = dataclasses.replace(scene.integrator, spp=chunk_spp, seed=seed)
     chunk_scene = dataclasses.replace(scene, integrator=integ)
-    return PathTracer(chunk_scene, cfg).render().image.astype(np.float64)
+    return make_renderer("pt", chunk_scene, cfg).render().image.astype(np.float64)
 
 
 def chunk_sums(scene: Scene, cfg: DictConfig, chunk_spp: int, seeds: Iterable[int], total: np.ndarray | None,
@@ -296,14 +243,15 @@ def check_independent(attrs: dict, seeds, path: str | Path = "the reference") ->
         shown = overlap[:3] or [s for s in seeds if int(s) >= REF_SEED][:3]
         raise ConfigError(f"{path} was rendered with seeds {used.start}..{used.stop - 1}; the compared renders "
                           f"use seed(s) {shown} from the reference stream (>= {REF_SEED}): not independent")
-REFERENCE_DIR = Path(__file__).resolve().parents[2] / "data" / "references"
+REFERENCE_ENV = "NRC_REFERENCE_DIR"  # where references are kept (a shared path on a cluster)
 
 
 def reference_dir() -> Path:
     """Where references are kept by default: ``$NRC_REFERENCE_DIR`` (a shared path on a cluster), else
-    ``data/references/`` in the checkout."""
-    given = os.environ.get("NRC_REFERENCE_DIR")
-    return Path(given).expanduser() if given else REFERENCE_DIR
+    ``data/references/`` under the current working directory (the repo root, where the scripts and the
+    reference app run)."""
+    given = os.environ.get(REFERENCE_ENV)
+    return Path(given).expanduser() if given else Path.cwd() / "data" / "references"
 
 
 def default_reference_path(cfg: Any, spp: int) -> Path:

@@ -15,7 +15,7 @@ one-process render).
 **Equality with one process.** The parts' sums are added in chunk order; a single part covering every chunk is
 the one-process sum, bitwise. Several parts add ``(c0 + .. + c3) + (c4 + ..)`` where one process adds chunk after
 chunk: float64 rounding (~1e-16 relative), which the float32 image almost never shows (measured in
-``docs/references.md``).
+``docs/running.md``).
 """
 
 from __future__ import annotations
@@ -31,12 +31,12 @@ import torch
 from omegaconf import DictConfig
 from tqdm import tqdm
 
-from nrc.config import resolve_device
+from nrc.config import config_hash, resolve_device, scene_hash
 from nrc.errors import ConfigError, NRCError
 from nrc.io.atomic import write_atomically
-from nrc.evaluation.reference import (REF_SEED, REF_SEEDS_PER_BASE, _chunk_count, chunk_sums, config_hash,
-                                      medium_alpha, reference_base_seed, reference_noise_floor, scene_hash,
-                                      write_reference_exr)
+from nrc.evaluation.reference import (REF_SEED, REF_SEEDS_PER_BASE, _chunk_count, chunk_sums, reference_base_seed,
+                                      reference_noise_floor, write_reference_exr)
+from nrc.render.preview import medium_alpha
 from nrc.scene import load_scene
 
 log = logging.getLogger(__name__)

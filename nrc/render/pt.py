@@ -36,10 +36,9 @@ import os
 import time
 from typing import Any
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
-from omegaconf import DictConfig
 from tqdm import tqdm
 
 from nrc.config import ConfigReader
@@ -53,7 +52,7 @@ from nrc.render.wavefront.step import RussianRoulette
 from nrc.scene import Scene
 from nrc.transport.light_sampling import LightSamplingSettings
 from nrc.transport.rng import path_key, uniforms
-from nrc.transport.transmittance import make_transmittance
+from nrc.transport.transmittance import DEFAULT_ESTIMATOR, Transmittance, make_transmittance
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +96,8 @@ class PathTracerSettings:
     ``defer_g``, ``target``, ``mis``, ``domain`` (``light`` | ``distance``), ``distance_candidates``,
     ``distance_steps``: reservoir
     reuse at the first vertex or along the camera ray (nrc.render.reuse)."""
+    transmittance: Transmittance = Transmittance(DEFAULT_ESTIMATOR)
+    """The shadow rays' transmittance estimator (the root ``transmittance`` group; :meth:`from_app_config`)."""
 
     @property
     def roulette(self) -> RussianRoulette | None:
@@ -130,24 +131,30 @@ class PathTracerSettings:
         cfg.finish()
         return settings
 
+    @classmethod
+    def from_app_config(cls, cfg: Any) -> PathTracerSettings:
+        """From the app config: the ``renderer`` block and the ``transmittance`` group."""
+        return replace(cls.from_config(cfg.renderer), transmittance=make_transmittance(cfg.get("transmittance")))
+
 
 class PathTracer:
     """The wavefront path tracer (see module docstring).
 
     Args:
-        scene: the validated scene.
-        cfg: the app config (uses ``renderer``, ``transmittance``, ``scene.integrator``).
+        scene: the validated scene (its ``integrator`` block: spp, seed, max_scatter).
+        settings: its typed settings, passed whole (:meth:`PathTracerSettings.from_app_config`;
+            :func:`nrc.render.registry.make_renderer` builds them from the app config).
     """
 
     name = "pt"
 
-    def __init__(self, scene: Scene, cfg: DictConfig) -> None:
-        self.settings = st = PathTracerSettings.from_config(cfg.renderer)
+    def __init__(self, scene: Scene, settings: PathTracerSettings) -> None:
+        self.settings = st = settings
         self.scene = scene
-        self.device = scene.device_for(cfg)
+        self.device = scene.device
         self.slots, self.shadow_batch = st.slots, st.shadow_batch
         self.free_flight, self.backend, self.steps_per_call = st.free_flight, st.backend, st.steps_per_call
-        self.transmittance = make_transmittance(cfg.get("transmittance"))
+        self.transmittance = st.transmittance
         self.lights = st.light_sampling.sampler(scene)
         self.spp = scene.integrator.spp
         self.max_scatter = scene.integrator.max_scatter
@@ -213,6 +220,15 @@ class PathTracer:
         queues = Queues(self.core.shadow_queue(machine, self.shadow_batch, gen),
                         self.core.equiangular_queue(self.shadow_batch, gen))
         return Wavefront(machine, self.core.inputs, self.lights, self.slots, queues, Collector(watchers=(record,)))
+
+    def trace_pass(self, machine: Any, gen: torch.Generator, record: VertexRecord | None, j: int, passes: int,
+                   out: torch.Tensor) -> Wavefront:
+        """Pass ``j`` of ``passes`` one-sample passes (sample ``pixel * passes + j`` of every pixel) traced into
+        ``out`` (``(pixels, 3)``, added to) on ``machine`` (``self.core.choose``), recording the reuse vertices into
+        ``record``: what a reuse render does before its reuse pass (``scripts/bench_reuse.py`` decomposes it)."""
+        wf = self._wavefront(machine, gen, record)
+        wf.run(self.scene.camera.num_pixels, lambda r: self._camera_paths(r * passes + j), out)
+        return wf
 
     def _render_passes(self, machine: Any, gen: torch.Generator, image: torch.Tensor, bar: Any, on_pass: Any,
                        stats: dict[str, list]) -> Wavefront:

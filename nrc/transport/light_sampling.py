@@ -1,4 +1,5 @@
-"""Next-event estimation: sampling the scene's lights, and the environment's radiance and pdf for MIS.
+"""Next-event estimation: choosing one of the scene's lights, sampling it, and the environment's radiance and pdf
+for MIS.
 
 One light is chosen among the lights the scene has (no light, no shadow rays), by ``renderer.light_selection``:
 
@@ -9,30 +10,23 @@ One light is chosen among the lights the scene has (no light, no shadow rays), b
   ``I 2 pi (1 - sqrt(1 - R^2 / r^2))`` (the solid angle the sphere subtends), inside the sphere ``4 pi I``;
   a uniform sky ``pi R^2 4 pi L``; a lat-long map ``pi R^2`` times its radiance integrated over the sphere.
   Lights that send nothing are never chosen; when none sends anything the choice is uniform.
-* ``ris`` (``renderer.ris.candidates`` = ``M``): resampled importance sampling (Talbot et al. 2005; the light
-  sampling of Q2VKPT). ``M`` candidates ``x_i`` are drawn from the source distribution ``p_src`` (the ``power``
-  choice times the chosen light's own sampling pdf), weighted ``w_i = p_hat(x_i) / p_src(x_i)`` with
-  ``p_hat`` the luminance of the unshadowed contribution (emitted radiance x ``1/r^2`` x phase value, no
-  transmittance); one ``y`` is kept with probability ``w_y / sum w`` and its shadow ray traced, weighted
-  ``f(y) sum w / (M p_hat(y))`` (:func:`resample`). Unbiased for every ``M`` (``M = 1`` is ``power``). MIS
-  against phase sampling of the environment uses ``p_src`` in both weights (the RIS pdf of ``y`` is not
-  tractable), so the two weights still sum to one for every direction.
+* ``ris`` (``renderer.ris.candidates`` = ``M``): resampled importance sampling of ``M`` candidates of the
+  ``power`` choice (:mod:`nrc.transport.ris`).
 
 For the chosen light a direction ``wi`` (unit, from the shading point towards the light) is produced with:
 
 * directional: ``wi = -direction`` (a delta distribution), weight ``irradiance``;
 * point: ``wi`` towards the position, distance ``r``, weight ``intensity / r^2``;
 * environment: ``wi`` from the uniform sphere (uniform sky) or from the image's piecewise-constant
-  distribution (lat-long image, proportional to luminance x sin(theta) per pixel), weight ``L(wi) / pdf``.
+  distribution (lat-long image, :class:`~nrc.transport.environment.EnvironmentMap`), weight ``L(wi) / pdf``.
 
 The returned ``weight`` already includes ``1 / P(select)``; the caller multiplies by the phase function,
-the transmittance to the light and, for environment samples, the MIS weight (power heuristic against
+the transmittance to the light and, for environment samples, the MIS weight (:func:`power_heuristic` against
 phase sampling, whose escape contributions use :meth:`LightSampler.env_pdf`).
 
 One owner: :class:`LightTable` holds the choice and the geometry (component form, the lights' numbers as an input
 of the compiled step); :class:`LightSampler` (rows) adds the lat-long maps and the environment's pdf and radiance
-on top of the same code; :func:`resample` is RIS for both, and its choice (:func:`ris_choice`) is also the
-reservoirs' in ``nrc.render.reuse``.
+on top of the same code; :func:`~nrc.transport.ris.resample` is RIS for both.
 """
 
 from __future__ import annotations
@@ -44,9 +38,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from nrc.transport.lights import DirectionalLight, EnvironmentLight, Light, PointLight
+from nrc.transport.environment import EnvironmentMap, sphere_direction, uniform_sphere
+from nrc.transport.lights import LUMINANCE, DirectionalLight, EnvironmentLight, Light, PointLight
+from nrc.transport.ris import Candidate, resample
 
-_LUMINANCE = (0.2126, 0.7152, 0.0722)
 SELECTIONS = ("uniform", "power", "ris")
 POINT_LIGHT_SAMPLING = ("none", "equiangular")
 
@@ -61,7 +56,7 @@ class LightSamplingSettings:
     """``uniform`` | ``power`` | ``ris`` (module docstring)."""
     candidates: int = 4
     """``ris``: candidates ``M`` per next-event estimate (``>= 1``; ignored by the other selections; measured in
-    docs/path_tracer_measurements.md, "Light selection": 8 more efficient on many lights, 4 the default)."""
+    docs/measurements/path_tracer.md, "Light selection": 8 more efficient on many lights, 4 the default)."""
     point_lights: str = "none"
     """``none`` | ``equiangular``: point lights' direct light by equi-angular distance sampling along every
     flight segment instead of next-event estimation at the vertices (:mod:`nrc.transport.equiangular`)."""
@@ -98,7 +93,7 @@ class LightSamplingSettings:
 
 
 def _lum(rgb: Tensor) -> float:
-    return float((rgb.double().cpu() * torch.tensor(_LUMINANCE, dtype=torch.float64)).sum())
+    return float((rgb.double().cpu() * torch.tensor(LUMINANCE, dtype=torch.float64)).sum())
 
 
 def light_powers(lights: tuple[Light, ...], centre: Tensor, radius: float) -> list[float]:
@@ -120,97 +115,9 @@ def light_powers(lights: tuple[Light, ...], centre: Tensor, radius: float) -> li
             h, w = e.image.shape[:2]
             theta = (torch.arange(h, dtype=torch.float64) + 0.5) / h * math.pi
             d_omega = (2.0 * math.pi / w) * (math.pi / h) * torch.sin(theta)  # (H,) solid angle of a pixel
-            lum = (e.image.double().cpu() * torch.tensor(_LUMINANCE, dtype=torch.float64)).sum(-1) * e.scale
+            lum = (e.image.double().cpu() * torch.tensor(LUMINANCE, dtype=torch.float64)).sum(-1) * e.scale
             out.append(area * float((lum * d_omega[:, None]).sum()))
     return out
-
-
-def direction_to_latlong(d: Tensor) -> tuple[Tensor, Tensor]:
-    """Unit directions ``(N, 3)`` -> lat-long ``(u, v)`` in ``[0, 1)`` x ``[0, 1]`` (SCENE.md mapping)."""
-    u = torch.atan2(d[:, 0], -d[:, 2]) / (2.0 * math.pi)
-    u = u - torch.floor(u)
-    v = torch.acos(d[:, 1].clamp(-1.0, 1.0)) / math.pi
-    return u, v
-
-
-def latlong_to_direction(u: Tensor, v: Tensor) -> Tensor:
-    """Inverse of :func:`direction_to_latlong`."""
-    phi, theta = 2.0 * math.pi * u, math.pi * v
-    s = torch.sin(theta)
-    return torch.stack([s * torch.sin(phi), torch.cos(theta), -s * torch.cos(phi)], dim=-1)
-
-
-def sphere_direction(u0: Tensor, u1: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """A uniform direction on the unit sphere (pdf ``1 / 4pi``) from two uniforms, in component form."""
-    z = 1.0 - 2.0 * u0
-    r = torch.sqrt((1.0 - z * z).clamp(min=0.0))
-    phi = 2.0 * math.pi * u1
-    return r * torch.cos(phi), r * torch.sin(phi), z
-
-
-def uniform_sphere(u: Tensor) -> Tensor:
-    """Uniform directions on the unit sphere from ``u`` ``(N, 2)`` in ``[0, 1)^2`` (pdf ``1 / 4pi``)."""
-    return torch.stack(sphere_direction(u[:, 0], u[:, 1]), dim=-1)
-
-
-class EnvironmentMap:
-    """Lat-long environment radiance with bilinear lookup and importance sampling.
-
-    Args:
-        image: ``(H, W, 3)`` radiance, row 0 straight up, column 0 facing -z.
-        scale: multiplier of the radiance.
-    """
-
-    def __init__(self, image: Tensor, scale: float) -> None:
-        self.image = image * scale
-        self.h, self.w = image.shape[:2]
-        lum = (self.image * torch.tensor(_LUMINANCE, device=image.device)).sum(-1)
-        theta = (torch.arange(self.h, device=image.device) + 0.5) / self.h * math.pi
-        weights = (lum * torch.sin(theta)[:, None]).reshape(-1).double()
-        total = float(weights.sum())
-        if total <= 0:  # a black map: sample uniformly (its radiance is zero anyway)
-            weights = torch.ones_like(weights)
-            total = float(weights.numel())
-        self.pmf = (weights / total).float()
-        self.cdf = torch.cumsum(weights / total, 0).float()
-        self.cdf[-1] = 1.0
-
-    def radiance(self, d: Tensor) -> Tensor:
-        """Bilinear radiance ``(N, 3)`` for unit directions ``d`` (wraps in u, clamps in v)."""
-        u, v = direction_to_latlong(d)
-        x = u * self.w - 0.5
-        y = (v * self.h - 0.5).clamp(0.0, self.h - 1.0)
-        x0 = torch.floor(x)
-        y0 = torch.floor(y).clamp(max=max(self.h - 2, 0))
-        fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-        x0i = x0.long() % self.w
-        x1i = (x0i + 1) % self.w
-        y0i = y0.long()
-        y1i = (y0i + 1).clamp(max=self.h - 1)
-        img = self.image
-        top = img[y0i, x0i] * (1 - fx) + img[y0i, x1i] * fx
-        bot = img[y1i, x0i] * (1 - fx) + img[y1i, x1i] * fx
-        return top * (1 - fy) + bot * fy
-
-    def sample(self, u: Tensor) -> tuple[Tensor, Tensor]:
-        """Sample ``(direction (N, 3), solid-angle pdf (N,))`` from ``u`` ``(N, 3)`` in ``[0, 1)^3``."""
-        idx = torch.searchsorted(self.cdf, u[:, 0].contiguous(), right=True).clamp(max=self.cdf.numel() - 1)
-        row, col = idx // self.w, idx % self.w
-        uu = (col.to(u.dtype) + u[:, 1]) / self.w
-        vv = (row.to(u.dtype) + u[:, 2]) / self.h
-        d = latlong_to_direction(uu, vv)
-        return d, self._pdf_of_pixel(idx, vv)
-
-    def pdf(self, d: Tensor) -> Tensor:
-        """Solid-angle pdf ``(N,)`` with which :meth:`sample` produces unit directions ``d``."""
-        u, v = direction_to_latlong(d)
-        col = (u * self.w).long().clamp(0, self.w - 1)
-        row = (v * self.h).long().clamp(0, self.h - 1)
-        return self._pdf_of_pixel(row * self.w + col, v)
-
-    def _pdf_of_pixel(self, idx: Tensor, v: Tensor) -> Tensor:
-        sin_theta = torch.sin(math.pi * v).clamp(min=1e-7)
-        return self.pmf[idx] * (self.w * self.h) / (2.0 * math.pi**2 * sin_theta)
 
 
 @dataclass
@@ -231,7 +138,7 @@ class LightSampler:
     Args:
         lights: the scene's lights (any number, including none).
         selection: ``uniform``, ``power`` or ``ris`` (module docstring; :meth:`sample` draws from the source
-            distribution, ``power`` for ``ris``, whose resampling is :func:`resample`).
+            distribution, ``power`` for ``ris``, whose resampling is :func:`~nrc.transport.ris.resample`).
         bounds: ``(lo, hi)`` of the medium's box, for ``power`` and ``ris``.
         candidates: ``ris``: candidates per estimate.
     """
@@ -387,70 +294,6 @@ class LightSampler:
         return wi, dist, contribution, p_src
 
 
-def luminance3(c: tuple) -> Tensor:
-    """Rec. 709 luminance of an RGB triple in component form."""
-    return _LUMINANCE[0] * c[0] + _LUMINANCE[1] * c[1] + _LUMINANCE[2] * c[2]
-
-
-Candidate = tuple  # (wi (3-tuple), distance, weight (3-tuple), light_pdf, is_env), component form
-
-
-def resample(candidates: list[Candidate], phase_of: Callable[[tuple], Tensor], u: Tensor) -> tuple[Candidate, Tensor]:
-    """Resampled importance sampling over next-event candidates (module docstring, ``ris``).
-
-    Each candidate is a sample of the source distribution as :meth:`LightTable.sample` returns it: its
-    ``weight`` is the light's contribution over ``p_src`` (without phase and transmittance), so its RIS weight
-    is ``w_i = p_hat / p_src = luminance(weight_i) x phase(wi_i)``. One candidate is kept with probability
-    ``w / sum w`` (:func:`ris_choice`, by the uniform ``u``) and its ``weight`` replaced by
-    ``weight_y sum w / (M luminance(weight_y) phase(wi_y))``, so that the caller's
-    ``weight x phase x transmittance`` is the RIS estimate ``f(y) sum w / (M p_hat(y))``.
-    Where every weight is zero the kept weight is zero. ``light_pdf`` stays the source pdf (the MIS weights').
-
-    Returns:
-        ``(chosen candidate, sum w)`` (all ``(N,)`` components).
-    """
-    ws = [luminance3(c[2]) * phase_of(c[0]) for c in candidates]
-    sel, total = ris_choice(ws, u)
-    chosen, chosen_w = candidates[0], ws[0]
-    for i in range(1, len(candidates)):
-        take = sel == i
-        chosen, chosen_w = _select(take, candidates[i], chosen), torch.where(take, ws[i], chosen_w)
-    # weight / (luminance x phase) = weight / chosen_w; times sum w / M
-    scale = torch.where(chosen_w > 0, total / (len(candidates) * chosen_w.clamp(min=1e-30)), torch.zeros_like(total))
-    wi, dist, weight, pdf, env = chosen
-    return (wi, dist, tuple(c * scale for c in weight), pdf, env), total
-
-
-def ris_choice(ws: list[Tensor], u: Tensor) -> tuple[Tensor, Tensor]:
-    """The one resampling choice (RIS here, the reservoirs' resampling and merging in ``nrc.render.reuse``).
-
-    ``ws``: ``m`` weights ``(N,)``, ``u`` ``(N,)`` uniforms. Returns the index ``(N,)`` (int64) kept with
-    probability ``w_i / sum w``: the first whose running sum exceeds ``u sum w``, where rounding leaves none the
-    last positive weight, 0 where every weight is 0; and ``sum w`` ``(N,)``. Streams over the list (no stacked
-    ``(N, m)`` tensor: the compiled step's form)."""
-    total = ws[0]
-    for w in ws[1:]:
-        total = total + w
-    target = u * total
-    run = torch.zeros_like(total)
-    first = torch.zeros_like(total, dtype=torch.int64)
-    last = torch.zeros_like(first)
-    picked = torch.zeros_like(total, dtype=torch.bool)
-    for i, w in enumerate(ws):
-        run = run + w
-        pos = w > 0
-        take = ~picked & pos & (target < run)
-        first, last = torch.where(take, i, first), torch.where(pos, i, last)
-        picked = picked | take
-    return torch.where(picked, first, last), total
-
-
-def _select(m: Tensor, a: Candidate, b: Candidate) -> Candidate:
-    """Candidate-wise ``where(m, a, b)``."""
-    return (_pick(m, a[0], b[0]), torch.where(m, a[1], b[1]), _pick(m, a[2], b[2]), torch.where(m, a[3], b[3]),
-            torch.where(m, a[4], b[4]))
-
-
 def power_heuristic(a: Tensor, b: Tensor | float) -> Tensor:
     """Power heuristic ``a^2 / (a^2 + b^2)`` (elementwise), 1 where both are zero."""
     a2, b2 = a * a, b * b
@@ -482,7 +325,7 @@ class LightTable:
     ``position (3), intensity (3)``; with a uniform sky its radiance ``(3)`` and the NEE pdf of any
     direction, ``P(select sky) / (4 pi)``; with ``power`` or ``ris`` selection (and several lights) then every
     light's selection probability, in light order (the uniform choice needs none). ``ris`` draws
-    :attr:`candidates` samples of that source distribution and :func:`resample` keeps one
+    :attr:`candidates` samples of that source distribution and :func:`~nrc.transport.ris.resample` keeps one
     (:meth:`sample_ris`). The chosen light is looked up by its index in its type's ``(count, 6)`` block (no
     masked selection per light).
 
@@ -531,8 +374,8 @@ class LightTable:
         return self.candidates * self.lanes_per_candidate + (self.candidates > 1)
 
     def sample_ris(self, values: list, x: tuple, u: list, phase_of: Callable[[tuple], Tensor]) -> Candidate:
-        """:meth:`sample` for one candidate, :func:`resample` over :attr:`candidates` of them otherwise
-        (``u``: :attr:`lanes` uniforms; ``phase_of(wi)`` the phase value towards ``wi``)."""
+        """:meth:`sample` for one candidate, :func:`~nrc.transport.ris.resample` over :attr:`candidates` of them
+        otherwise (``u``: :attr:`lanes` uniforms; ``phase_of(wi)`` the phase value towards ``wi``)."""
         k = self.lanes_per_candidate
         if self.candidates == 1:
             return self.sample(values, x, u[:k])

@@ -8,7 +8,8 @@
   maps to ``u = atan2(d.x, -d.z) / 2pi`` (wrapped to [0, 1), column 0 faces -z, a quarter turn faces +x)
   and ``v = acos(d.y) / pi`` (row 0 straight up), with bilinear lookup.
 
-All vectors are float32 tensors on the scene's device; RGB values are linear.
+All vectors are float32 tensors on the scene's device; RGB values are linear, their luminance Rec. 709
+(:data:`LUMINANCE`, :func:`luminance3`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from torch import Tensor
+
+LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
 @dataclass(frozen=True)
@@ -38,3 +41,8 @@ class EnvironmentLight:
 
 
 Light = DirectionalLight | PointLight | EnvironmentLight
+
+
+def luminance3(c: tuple) -> Tensor:
+    """Rec. 709 luminance of an RGB triple in component form."""
+    return LUMINANCE[0] * c[0] + LUMINANCE[1] * c[1] + LUMINANCE[2] * c[2]

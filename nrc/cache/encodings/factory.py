@@ -52,7 +52,7 @@ def auto_log2_hashmap_size(training_paths: int, thick: bool = True) -> int:
     EMA, the gradient's zeroing). At 160x90 (4,608 training paths a frame, ~18k records in 4 steps) a table of 2^16
     rows a level learns the thick cloud as well as 2^19 (NRC+OIDN relMSE after 30 frames, three seeds, -3 % to
     +1 %) at 0.7x the training time; in moderate clouds (median optical depth 7-39) it was 5-12 % worse, so they
-    keep 2^19 (docs/benchmarks.md, "A hash table sized to the training paths"). 4,096 paths (the default
+    keep 2^19 (docs/measurements/nrc_frames.md, "A hash table sized to the training paths"). 4,096 paths (the default
     ``min_paths``) give 2^16, 40,960 (``max_paths``) 2^19.
     """
     lo, hi = AUTO_LOG2_RANGE

@@ -1,52 +1,16 @@
 """Unbiased NRC: the radiance cache as a control variate (``renderer.debias``).
 
-A render path of the NRC renderer stops at a vertex ``x`` (reached along ``d``, throughput ``beta`` before
-``x``'s albedo) and adds ``beta C`` with ``C = cache(x, d)``, the quantity the cache stores under
-``renderer.cache_target``. Every image is then biased by the cache's error ``L - C``, and accumulating frames
-cannot remove it. With ``renderer.debias.probability = q > 0`` the path goes on, with probability ``q``, as a
-path-traced suffix that never terminates again, whose contributions ``L_hat`` (an unbiased estimate of exactly
-the cached quantity) are weighted ``beta / q``, and the cache's value enters with the weight ``beta (1 - 1/q)``::
+A render path that would stop at a vertex ``x`` (along ``d``, throughput ``beta``) and add ``beta C``,
+``C = cache(x, d)``, goes on with probability ``q`` as a path-traced suffix that never terminates again, whose
+contributions ``L_hat`` are weighted ``beta / q``, while the cache enters with the weight ``beta (1 - 1/q)``::
 
     stopped (1 - q):    beta C
     continued (q):      beta C + beta (L_hat - C) / q
 
-The expectation is ``beta E[L_hat]`` for *any* cache, so the frame is an unbiased estimate of the path tracer's
-image (the same ``max_scatter``, light sampling and estimators). Both terms use the same ``C``: the cache is
-queried once per path, with the weights frozen for the frame (render paths use the EMA weights trained up to the
-previous frame), and the one clamp (a negative or non-finite prediction reads 0) applies to both. The
-contributions of continued paths can be negative (``C`` above the suffix's estimate): they are never clamped in
-the image, whose pixels may be negative; only the denoiser's copy is clamped (:mod:`nrc.denoise`), and the
-metrics report the bias that clamp adds (``denoise_clamp_bias``).
-
-With ``cache_target: indirect`` the terminal vertex keeps its own next-event estimate (light sampling alone,
-throughput ``beta``, outside the ``1/q``) and ``L_hat`` is the suffix's indirect light: the environment that the
-continued path's first phase-sampled direction reaches is not counted (it is direct light, which the vertex's
-estimate already covers). With ``full`` the continued vertex does the path tracer's next-event estimate with MIS,
-all of it inside the ``1/q``.
-
-**Variance** at the vertex: ``beta^2 (E[(L_hat - C)^2] / q - (L - C)^2)`` added to the variance of the biased
-estimator's terms. The cache removes the variance of where the vertex lands, not the suffix's own noise
-(``E[(L_hat - C)^2] >= Var(L_hat)``): the gain over the path tracer is the suffix cost saved when ``1 - q`` of
-the paths stop, paid for by ``1/q`` times the suffix's variance and by the cache's inference and training.
-Per frame the renderer measures the correction's second moment per render sample, ``M = q E[c^2]`` with
-``c = beta (L_hat - C) / q`` over the continued samples (``debias_correction_moment``; the variance the
-correction adds to a sample is about ``M / q``), and the cache's error where render paths terminate,
-``E[beta (L_hat - C)] / E[beta C]`` (``debias_cache_error``: the relative bias the biased renderer would have
-there, measured online).
-
-**Suffixes as training data** (``train_on_suffixes``): a continued suffix is an unbiased estimate of the cached
-quantity at ``(x, d)``; its record ``(x, d) -> suffix q / beta`` is pushed into the ring buffer, from which the
-training batches' invalid records are filled.
-
-========================== ======= =================================================================
-``renderer.debias`` key    default meaning
-========================== ======= =================================================================
-``probability``            0.0     ``q``: probability that a render path goes on past its cache termination
-                                   (0: the biased NRC of Müller et al.; 1: the path tracer's estimator,
-                                   the cache cancels). Changing it recompiles nothing (it travels in ``P``);
-                                   0 and > 0 are different step structures.
-``train_on_suffixes``      true    push the continued suffixes into the ring buffer as training records
-========================== ======= =================================================================
+The expectation is ``beta E[L_hat]`` for any cache: every frame is an unbiased estimate of the path tracer's
+image. Here: the settings (:class:`DebiasSettings`), the estimator's per-frame statistics and the suffixes' training
+records; the draw is in NRC's vertex program (:mod:`nrc.render.radiance_caching.vertex`). The derivation, the
+``cache_target`` cases, the variance, the tests and the measurements: ``docs/nrc.md``, "Unbiased NRC".
 
 Memory: one suffix row (3 floats) per render sample of a frame, and per continued path its sample id and
 throughput.
@@ -61,17 +25,20 @@ import torch
 from torch import Tensor
 
 from nrc.render.radiance_caching.ring_buffer import TrainingRecords
-from nrc.transport.light_sampling import luminance3
+from nrc.transport.lights import luminance3
 
 
 @dataclass(frozen=True)
 class DebiasSettings:
-    """``renderer.debias`` (``conf/renderer/nrc.yaml``; the module docstring has the table)."""
+    """``renderer.debias`` (``conf/renderer/nrc.yaml``)."""
 
     probability: float = 0.0
-    """``q`` in ``[0, 1]``: a render path that would terminate into the cache goes on with this probability."""
+    """``q`` in ``[0, 1]``: a render path that would terminate into the cache goes on with this probability (0: the
+    biased NRC of Müller et al.; 1: the path tracer's estimator, the cache cancels). Changing it recompiles nothing
+    (it travels in ``P``); 0 and > 0 are different step structures."""
     train_on_suffixes: bool = True
-    """The continued suffixes enter the ring buffer as training records."""
+    """The continued suffixes enter the ring buffer as training records ``(x, d) -> suffix q / beta`` (an unbiased
+    estimate of the cached quantity), from which the training batches' invalid records are filled."""
 
     @classmethod
     def from_config(cls, cfg: Any) -> DebiasSettings:

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from nrc.errors import ConfigError
 from nrc.io.png import DisplaySettings, tonemap
 
 
@@ -94,3 +95,19 @@ class FrameLog:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
+
+
+def load_reference(path: str | None, camera: Any) -> np.ndarray | None:
+    """``renderer.reference``: the EXR every frame's ``rel_mse`` and ``mse`` compare against, ``(H, W, 3)`` float32
+    at the camera's size (``None`` without one); ``ConfigError`` naming the key."""
+    if path is None:
+        return None
+    from nrc.io import read_exr
+
+    if not Path(path).is_file():
+        raise ConfigError(f"renderer.reference: no such file {path}")
+    ref, _ = read_exr(path)
+    if ref.shape[:2] != (camera.height, camera.width):
+        raise ConfigError(f"renderer.reference is {ref.shape[1]}x{ref.shape[0]}, the camera renders "
+                          f"{camera.width}x{camera.height}")
+    return ref[..., :3].astype(np.float32)

@@ -1,53 +1,23 @@
 """One wavefront for the NRC renderer's render paths and self-training paths.
 
-Render paths (``spp`` per pixel) and training paths (one per training pixel) are traced in the same
-working set of ``slots`` paths by the path tracer's transport core (:mod:`nrc.render.wavefront`, the same
-step code, eager or compiled: ``renderer.backend``): delta tracking against the brick majorants, next-event
-estimation at every real scattering vertex (one light chosen by ``renderer.light_selection``, transmittance
-by ratio tracking in the step or the configured estimator), phase sampling with MIS against the environment. The NRC part of the
-step is its vertex: the termination rule, the training records and the cache query. With ``renderer.reuse`` the
-render paths' first vertex is recorded instead of estimating its direct light, which the renderer's reuse pass
-adds (:mod:`nrc.render.reuse`; a path that terminates there into the cache is recorded only with
-``cache_target=indirect``, whose terminating vertices estimate their direct light).
-
-Cache termination (:mod:`nrc.render.radiance_caching.termination`) at a real scattering vertex ``m``: the path stops
-without next-event estimation and adds ``beta x cache(x_m, d_m)`` where ``beta`` is its throughput up to
-``x_m`` (before ``x_m``'s albedo) and ``d_m`` the unit direction of travel arriving at ``x_m``. The cache
-therefore stores the radiance scattered at ``x`` towards ``-d`` (albedo included): ``L_s(x, d) = albedo x
-integral of phase(d, w) L_i(x, w) dw``. Paths that leave the medium never query the cache; pixels whose
-camera ray never scatters only see the environment.
-
-``cache_target=indirect`` (``renderer.cache_target``) moves the direct light out of the cache: the cache
-stores ``L_s`` minus the single-scattered light of the lights (next-event estimation with MIS and the
-environment reached by phase sampling, both at ``x``), and a terminating path adds its own next-event
-estimate by light sampling alone (weight 1, no MIS: the path does not go on to find the environment by phase
-sampling) besides ``beta x cache``. A record's target is then ``T_j - D_j`` with ``D_j`` its own direct light
-(kept in separate rows of ``acc``). The cache no longer has to reproduce the phase function's peak towards a
-sun (at g 0.95, a 3-degree lobe); next-event estimation does that exactly.
-
-Training paths continue ``extra_vertices`` real vertices past the vertex where the rule would stop a
-render path, then terminate into the cache (self-training); a fraction of them (``unbiased_fraction``,
-drawn per path) never does and runs to ``max_scatter`` (unbiased suffixes). Vertex ``j = 1..V`` of a
-training path (``V = records_per_path``) that is not its terminal vertex becomes a training record
-``(x_j, d_j) -> T_j`` with ``T_j = L_s`` estimated by the rest of the path::
-
-    T_j = acc_j + albedo x T_{j+1}
-
-where ``acc_j`` sums, with the throughput *relative to vertex j* (``albedo`` at ``j``, times the albedo of
-every later vertex beyond ``V``, which all add into ``acc_V``), the next-event estimate at ``j``, the
-MIS-weighted environment reached by the direction sampled at ``j``, and the cache value at the terminal
-vertex if it follows ``j``. Everything is float32.
-
-With ``renderer.debias`` (:mod:`nrc.render.radiance_caching.debias`) a render path that would terminate goes on
-with probability ``q`` as a path-traced suffix (throughput ``beta / q``) and its cache query gets the weight
-``beta (1 - 1/q)``: the cache is a control variate and the image is unbiased.
+Render paths (``spp`` per pixel) and training paths (one per training pixel) are traced in the same working set of
+``slots`` paths by the path tracer's transport core (:mod:`nrc.render.wavefront`, eager or compiled). The NRC part
+of the step is its vertex (:mod:`nrc.render.radiance_caching.vertex`): the termination rule
+(:mod:`nrc.render.radiance_caching.termination`), the training records and the cache query. A terminating path
+adds ``beta x cache(x_m, d_m)`` (``beta`` its throughput before ``x_m``'s albedo, ``d_m`` the direction arriving
+at ``x_m``); with ``cache_target=indirect`` also its own next-event estimate by light sampling alone. Training paths
+go on ``extra_vertices`` past that vertex (a fraction ``unbiased_fraction`` never terminates), and vertex ``j`` of
+one becomes a record ``(x_j, d_j) -> T_j`` with ``T_j = acc_j + albedo x T_{j+1}``. With ``renderer.reuse`` the
+render paths' reuse vertex is recorded for the reuse pass (:mod:`nrc.render.reuse`); with ``renderer.debias`` a
+terminating render path may go on as a path-traced suffix (:mod:`nrc.render.radiance_caching.debias`). What the
+cache stores, the targets and the termination rules: ``docs/nrc.md``, "One frame".
 
 Contributions land in one accumulator ``acc`` of ``P + N_train x V + 1`` rows: rows ``[0, P)`` are image
 pixels (sums over the ``spp`` samples), then ``V`` rows per training path, then one discard row for
 training paths that have not scattered yet; with ``cache_target=indirect`` then ``N_train x V`` rows of the
 records' own direct light; with ``renderer.debias`` then one suffix row per render sample (zero unless the
 sample was continued; the caller adds them to the pixels). Cache queries are returned (not evaluated) so the
-caller can batch and filter them.
+caller can batch and filter them. Everything is float32.
 """
 
 from __future__ import annotations

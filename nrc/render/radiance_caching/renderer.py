@@ -10,10 +10,8 @@ Each frame (``frames`` in the root config):
 3. **train**: training targets by the backward recurrence (:mod:`nrc.render.radiance_caching.training_set`), the batch
    filter (``batch_filter`` group) picks the batches of the training image to train, invalid records are
    replaced from the ring buffer of earlier frames, one Adam step per batch, then the frame's valid
-   records enter the ring buffer (:mod:`nrc.render.radiance_caching.trainer`). With ``renderer.training.overlap``
-   (CPU, the compiled structure) these steps run on a second core during the next frame's trace, once it is down to
-   its one-thread tail, and before that frame's inference: the same updates in the same order. The frame's
-   ``loss`` (and ``train_steps``, ``time_train_work_s``) is then logged with the next frame (``FrameLog.trained``).
+   records enter the ring buffer (:mod:`nrc.render.radiance_caching.trainer`; with ``renderer.training.overlap``
+   beside the next frame's trace, its ``loss`` then logged with the next frame, ``FrameLog.trained``).
 
 The output is the last frame's image, or the mean over frames with ``renderer.accumulate``. With a
 ``renderer.reference`` EXR every frame's relative MSE is logged. A checkpoint (cache weights, Adam, EMA,
@@ -35,44 +33,40 @@ from __future__ import annotations
 import logging
 import os
 import signal
-import threading
 import time
-from collections.abc import Callable
-from dataclasses import replace
+from collections.abc import Callable, Generator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 from torch import Tensor
 from tqdm import tqdm
 
 from nrc.cache.radiance_cache import build_radiance_cache
+from nrc.camera import Camera
 from nrc.errors import ConfigError, NRCError
-from nrc.io.png import DisplaySettings
 from nrc.render.radiance_caching import debias
-from nrc.render.radiance_caching.batch_filter import make_batch_filter
 from nrc.render.radiance_caching.checkpoint import (CheckpointError, check_config, load_checkpoint, plain,
                                                     save_checkpoint)
-from nrc.camera import Camera
-from nrc.render.radiance_caching.frame_log import LIGHT_SCALARS, FrameLog
+from nrc.render.radiance_caching.frame_log import LIGHT_SCALARS, FrameLog, load_reference
 from nrc.render.radiance_caching.inference_filter import filtered_query
 from nrc.render.radiance_caching.paths import NRCPathTracer, PathSet
-from nrc.render.radiance_caching.trainer import Trainer, TrainingJob
-from nrc.render.radiance_caching.settings import (UNBIASED_FRACTION, NRCSettings, app_checks, auto_carry_frames,
-                                                  auto_training_regime, ring_size)
-from nrc.render.result import RenderResult
 from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
-from nrc.transport.rng import RandomSource
-from nrc.render.wavefront.machine import compiled_graphs
+from nrc.render.radiance_caching.settings import NRCRendererSettings, resolve_auto, ring_size
+from nrc.render.radiance_caching.signals import StopOnSignal
+from nrc.render.radiance_caching.trainer import Trainer, TrainingJob
+from nrc.render.radiance_caching.training_set import (frame_records, medium_pixel_mask, training_positions,
+                                                      training_targets)
+from nrc.render.result import RenderResult
 from nrc.render.reuse import make_reuse
-from nrc.render.radiance_caching.training_set import (auto_training_size, frame_records, medium_pixel_mask,
-                                                      training_positions, training_targets)
+from nrc.render.wavefront.machine import compiled_graphs
 from nrc.scene import Scene, animated_scene, turned_suns
 from nrc.transport.light_sampling import LightSampler
-from nrc.transport.transmittance import make_transmittance
+from nrc.transport.rng import RandomSource
 
+FrameOut = tuple[int, np.ndarray, np.ndarray, dict[str, Any]]  # frame, image, output, stats
 FrameCallback = Callable[[int, np.ndarray, np.ndarray, dict[str, Any]], None]
 
 
@@ -80,96 +74,51 @@ MAX_NONFINITE_STEPS = 8  # consecutive skipped (non-finite) training steps that 
 logger = logging.getLogger("nrc")
 
 
-class _StopOnSignal:
-    """SIGINT / SIGTERM ask the frame loop to stop after the current frame (``signal`` is set); a second one, or
-    one before the first frame is done (a compile, say: nothing to save yet), restores the previous handlers and
-    re-raises, stopping at once. Inert outside the main thread."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self) -> None:
-        self.signal: int | None = None
-        self.frame_done = False  # set by the loop after its first frame: before it there is nothing to save
-        self._old: dict[int, Any] = {}
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        if self.signal is not None or not self.frame_done:  # a second signal, or nothing to save (e.g. compiling)
-            self._restore()
-            signal.raise_signal(signum)
-            return
-        self.signal = signum
-        logger.warning("%s: finishing the current frame, then writing the checkpoint and the outputs (again to "
-                    "stop at once)", signal.Signals(signum).name)
-
-    def _restore(self) -> None:
-        for s, old in self._old.items():
-            signal.signal(s, old)
-        self._old = {}
-
-    def __enter__(self) -> _StopOnSignal:
-        if threading.current_thread() is threading.main_thread():
-            for s in self.SIGNALS:
-                self._old[s] = signal.signal(s, self._handle)
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self._restore()
-
-
 class NRCRenderer:
     """The NRC frame loop (see the module docstring).
 
     Args:
         scene: the validated scene.
-        cfg: the app config (uses ``renderer``, ``frames``, ``cache``, ``encoding``, ``extra_inputs``,
-            ``batch_filter``, ``transmittance``, ``tonemap``, ``exposure``).
-        cache: a radiance cache to use instead of building one from the config (tests inject stubs).
+        settings: everything it reads, typed (:class:`~nrc.render.radiance_caching.settings.NRCRendererSettings`;
+            :func:`nrc.render.registry.make_renderer` builds them from the app config); ``auto`` rules not yet
+            resolved are resolved for ``scene`` here (:func:`~nrc.render.radiance_caching.settings.resolve_auto`).
+        cache: a radiance cache to use instead of building one from the settings (tests inject stubs).
     """
 
     name = "nrc"
 
-    def __init__(self, scene: Scene, cfg: DictConfig, cache: Any = None) -> None:
+    def __init__(self, scene: Scene, settings: NRCRendererSettings, cache: Any = None) -> None:
+        settings = resolve_auto(settings, scene)  # a no-op on the settings the entry points hand over
+        self.config = settings  # the whole settings; self.settings: their renderer block (NRCSettings)
         self.scene = scene
-        self.device = scene.device_for(cfg)
-        self.settings = st = NRCSettings.from_config(cfg.renderer)
-        self.frames = app_checks(cfg, own_cache=cache is None)
-        self.display = DisplaySettings.from_config(cfg)
-        self.batch_filter = make_batch_filter(cfg.batch_filter)
+        self.device = scene.device
+        self.settings = st = settings.nrc
+        self.frames, self.display, self.batch_filter = settings.frames, settings.display, settings.batch_filter
         tr = st.training
         self.medium_mask = medium_pixel_mask(scene.camera, scene.grid)  # (H, W) bool: the flicker figure's pixels
         self.medium_pixels = int(self.medium_mask.sum())
-        if tr.auto:  # the training budget sized to the pixels that see the medium (training_set.py)
-            w, h = auto_training_size(self.medium_pixels, scene.camera.width, scene.camera.height,
-                                      tr.paths_per_pixel, tr.min_paths, tr.max_paths)
-            tr = replace(tr, width=w, height=h)
-        # the auto rules' regime (settings.py): thick = median optical depth >= 40, static camera and lights
-        hash_auto = cache is None and OmegaConf.select(cfg, "encoding.position.log2_hashmap_size") == "auto"
-        self.optical_depth, regime = None, None  # the median over the camera rays, when a rule is auto
-        if tr.unbiased_fraction is None or tr.carry_frames is None or hash_auto:
-            regime, self.optical_depth = auto_training_regime(scene, st.animate)
-            if tr.unbiased_fraction is None:
-                tr = replace(tr, unbiased_fraction=UNBIASED_FRACTION[regime])
-            if tr.carry_frames is None:
-                tr = replace(tr, carry_frames=auto_carry_frames(regime, scene.albedo))
+        self.optical_depth = settings.optical_depth  # the median over the camera rays, when an auto rule needed it
+        if cache is None and settings.cache is None:
+            raise ConfigError("renderer=nrc builds its cache from the config groups cache, encoding, extra_inputs")
         # the hash table sized to the training paths in a thick cloud (encoding.position.log2_hashmap_size: auto)
+        groups = settings.cache
         self.cache = cache if cache is not None else build_radiance_cache(
-            cfg.cache, cfg.encoding, cfg.extra_inputs, scene.grid, self.device, scene.integrator.seed,
-            training_paths=tr.n_paths, thick=regime == "thick")
+            groups.cache, groups.encoding, groups.extra_inputs, scene.grid, self.device, scene.integrator.seed,
+            training_paths=tr.n_paths, thick=settings.regime == "thick")
         if st.cuda_graphs and hasattr(self.cache, "use_graphs"):  # the training step's forward and backward too
             self.cache.use_graphs()
-        self.settings = st = replace(st, training=tr)  # the auto choices resolved
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
         self.ring = RingBuffer(ring_size(tr), self.device)
         self.trainer = Trainer(self.cache, self.ring, tr.records_per_path)
-        self.transmittance = make_transmittance(cfg.get("transmittance"))
+        self.transmittance = settings.transmittance
         self.tracer = NRCPathTracer(scene, self.transmittance, st)
         self.reuse = make_reuse(st.reuse, scene.g, scene.integrator.spp, scene.grid, scene.albedo)
         self.tracer.frames = self.frames
         self.lights = st.light_sampling.sampler(scene)
-        self.reference = self._load_reference(st.reference)
+        self.reference = load_reference(st.reference, scene.camera)  # (H, W, 3) or None: rel_mse per frame
         self.out_dir: Path | None = None
         self.tensorboard_dir: Path | None = None
-        self.config_yaml = OmegaConf.to_yaml(cfg) if isinstance(cfg, DictConfig) else ""
+        self.config_yaml = settings.config_yaml
         self.checkpoint_path: Path | None = None
         self.checkpoint_frame, self.checkpoint_bytes = 0, 0
         self.interrupted: int | None = None
@@ -178,20 +127,6 @@ class NRCRenderer:
     def attach_output(self, out_dir: Path) -> None:
         """The run directory: TensorBoard logs (``tensorboard/``) and ``checkpoint.pt`` go there."""
         self.out_dir = Path(out_dir)
-
-    def _load_reference(self, path: str | None) -> np.ndarray | None:
-        if path is None:
-            return None
-        from nrc.io import read_exr
-
-        if not Path(path).is_file():
-            raise ConfigError(f"renderer.reference: no such file {path}")
-        ref, _ = read_exr(path)
-        cam = self.scene.camera
-        if ref.shape[:2] != (cam.height, cam.width):
-            raise ConfigError(f"renderer.reference is {ref.shape[1]}x{ref.shape[0]}, the camera renders "
-                              f"{cam.width}x{cam.height}")
-        return ref[..., :3].astype(np.float32)
 
     # ------------------------------------------------------------------ per-frame scene state
     def frame_camera(self, frame: int) -> Camera:
@@ -426,7 +361,27 @@ class NRCRenderer:
         return step
 
     def render(self, progress: bool = False, on_frame: FrameCallback | None = None) -> RenderResult:
-        """Run ``frames`` frames; ``on_frame(frame, image, output, stats)`` is called after each."""
+        """Run ``frames`` frames (:meth:`frame_loop`, a SIGINT or SIGTERM stopping it after the current frame);
+        ``on_frame(frame, image, output, stats)`` is called after each."""
+        with StopOnSignal() as stop:
+            loop = self.frame_loop(progress, stop)
+            try:
+                while True:
+                    try:
+                        item = next(loop)
+                    except StopIteration as end:
+                        return end.value
+                    if on_frame is not None:
+                        on_frame(*item)
+            finally:
+                loop.close()  # left on an error of on_frame: the loop closes its training thread first
+
+    def frame_loop(self, progress: bool = False,
+                   stop: StopOnSignal | None = None) -> Generator[FrameOut, None, RenderResult]:
+        """The frame loop, in the caller's thread: yields ``(frame, image, output, stats)`` after each frame and
+        returns the run's :class:`RenderResult`; closing it early stops the run after
+        the frame yielded (``nrc.frames``). ``stop``: the signal handler that ends it after a frame (none: inert)."""
+        stop = stop if stop is not None else StopOnSignal(active=False)
         st, cam = self.settings, self.scene.camera
         log_dir = self.out_dir / "tensorboard" if (self.out_dir is not None and st.tensorboard) else None
         if log_dir is not None and st.resume is not None:  # continue the interrupted run's curves, in its own logs
@@ -448,45 +403,43 @@ class NRCRenderer:
         done = start
         self.interrupted = None
         try:
-            with _StopOnSignal() as stop:
-                for frame in tqdm(range(start, self.frames), disable=not progress, desc="nrc", unit="frame",
-                                  leave=False):
-                    image, stats, losses = self.render_frame(frame)
-                    step = self._log_trained(log, step)  # the previous frame's steps, taken beside this trace
-                    self._check_training(frame, stats)
-                    if st.accumulate:
-                        accum += image
-                        n_accum += 1
-                        output = accum / n_accum
-                    else:
-                        output = image
-                    stats["flicker"] = self._flicker(output, previous)
-                    previous = output.clone()
-                    out_np = output.cpu().numpy()
-                    if self.reference is not None:
-                        from nrc.metrics import mse, rel_mse
+            for frame in tqdm(range(start, self.frames), disable=not progress, desc="nrc", unit="frame",
+                              leave=False):
+                image, stats, losses = self.render_frame(frame)
+                step = self._log_trained(log, step)  # the previous frame's steps, taken beside this trace
+                self._check_training(frame, stats)
+                if st.accumulate:
+                    accum += image
+                    n_accum += 1
+                    output = accum / n_accum
+                else:
+                    output = image
+                stats["flicker"] = self._flicker(output, previous)
+                previous = output.clone()
+                out_np = output.cpu().numpy()
+                if self.reference is not None:
+                    from nrc.metrics import mse, rel_mse
 
-                        stats["rel_mse"] = rel_mse(out_np, self.reference)
-                        stats["mse"] = mse(out_np, self.reference)
-                    log.steps(step, losses)
-                    step += len(losses)
-                    last = frame == self.frames - 1 or stop.signal is not None  # the final frame is always logged
-                    log.frame(frame, stats, {"frame": image.cpu().numpy(), "output": out_np}, force_images=last)
-                    if on_frame is not None:
-                        on_frame(frame, image.cpu().numpy(), out_np, stats)
-                    done = frame + 1
-                    stop.frame_done = True
-                    if stop.signal is not None:
-                        self.interrupted = stop.signal
-                        break
-                    waited = time.perf_counter() - t_saved
-                    by_time = st.checkpoint_seconds is not None and waited >= st.checkpoint_seconds
-                    due = (st.checkpoint_every and done % st.checkpoint_every == 0) or by_time
-                    if self.out_dir is not None and due and done < self.frames:
-                        self.trainer.join()  # this frame's steps first: the checkpoint holds no job half done
-                        step = self._log_trained(log, step)
-                        self._checkpoint(self.out_dir / "checkpoint.pt", done, accum, n_accum, log)
-                        t_saved = time.perf_counter()
+                    stats["rel_mse"] = rel_mse(out_np, self.reference)
+                    stats["mse"] = mse(out_np, self.reference)
+                log.steps(step, losses)
+                step += len(losses)
+                last = frame == self.frames - 1 or stop.signal is not None  # the final frame is always logged
+                log.frame(frame, stats, {"frame": image.cpu().numpy(), "output": out_np}, force_images=last)
+                yield frame, image.cpu().numpy(), out_np, stats
+                done = frame + 1
+                stop.frame_done = True
+                if stop.signal is not None:
+                    self.interrupted = stop.signal
+                    break
+                waited = time.perf_counter() - t_saved
+                by_time = st.checkpoint_seconds is not None and waited >= st.checkpoint_seconds
+                due = (st.checkpoint_every and done % st.checkpoint_every == 0) or by_time
+                if self.out_dir is not None and due and done < self.frames:
+                    self.trainer.join()  # this frame's steps first: the checkpoint holds no job half done
+                    step = self._log_trained(log, step)
+                    self._checkpoint(self.out_dir / "checkpoint.pt", done, accum, n_accum, log)
+                    t_saved = time.perf_counter()
         except BaseException:  # a render left on an error or early (nrc.frames) leaves no training thread behind
             self.trainer.close()
             raise

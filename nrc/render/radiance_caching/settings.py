@@ -174,9 +174,9 @@ def _carry_frames(tr: ConfigReader) -> int | None:
 
 
 THICK_OPTICAL_DEPTH = 40.0  # auto: a scene whose median optical depth reaches this is thick (docs/scenes.md)
-UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/nrc_measurements.md)
+UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/measurements/nrc_defaults.md)
 CARRY_FRAMES = {"moderate": 0, "thick": 4}  # auto's two values (docs/nrc.md, "Current defaults and why")
-CARRY_MIN_ALBEDO = 0.99  # auto carries only in a medium at least this white (cloud water; docs/benchmarks.md)
+CARRY_MIN_ALBEDO = 0.99  # auto carries only in a medium at least this white (cloud water; docs/measurements/nrc_frames.md)
 OPTICAL_DEPTH_PIXELS = 64 * 36  # auto: the optical depth is taken over a camera of about this many pixels
 
 
@@ -187,7 +187,7 @@ def auto_training_regime(scene: Any, animate: str = "none") -> tuple[str, float]
     (``animate`` ``none``), else ``moderate``. The ``auto`` settings follow it: :data:`UNBIASED_FRACTION` (in a
     thick cloud self-training passes most of a cached value on to the targets; more fully traced paths bring the
     image mean up sooner there, and cost accuracy on moderate clouds and under a moving light, where the cache
-    overshoots: docs/nrc_measurements.md, "Unbiased training paths" and "A whole animation") and
+    overshoots: docs/measurements/nrc_defaults.md, "Unbiased training paths" and "A whole animation") and
     :data:`CARRY_FRAMES` (a thick cloud's frame no longer waits for its long training paths; in a moderate one the
     carried quarter of unbiased paths held the image darker: docs/nrc.md, "Current defaults and why")."""
     from nrc.volume.optical_depth import scene_optical_depth
@@ -203,7 +203,7 @@ def auto_carry_frames(regime: str, albedo: float) -> int:
     """``carry_frames: auto``: :data:`CARRY_FRAMES` of the regime (:func:`auto_training_regime`) in a medium of
     albedo at least :data:`CARRY_MIN_ALBEDO`, else 0. In the thick cloud at albedo 0.95 carrying 4 frames gave a
     30-35 % larger NRC+OIDN error after 30 frames than waiting (three seeds, two table sizes), at 0.99 and 1 a
-    smaller one (docs/benchmarks.md, "Carried training paths end in the cache" and "A hash table sized to the
+    smaller one (docs/measurements/nrc_frames.md, "Carried training paths end in the cache" and "A hash table sized to the
     training paths"); albedos between were not measured, so those wait."""
     return CARRY_FRAMES[regime] if albedo >= CARRY_MIN_ALBEDO else 0
 
@@ -258,3 +258,96 @@ def app_checks(cfg: Any, own_cache: bool = True) -> int:
         if cfg.get(group) is None:
             raise ConfigError(f"renderer=nrc needs the config group '{group}' (see conf/config.yaml)")
     return frames
+
+
+@dataclass(frozen=True)
+class CacheGroups:
+    """The radiance cache's config groups (``cache``, ``encoding``, ``extra_inputs``) as plain mappings, validated
+    by :func:`nrc.cache.radiance_cache.build_radiance_cache` when the renderer builds its cache."""
+
+    cache: dict[str, Any]
+    encoding: dict[str, Any]
+    extra_inputs: dict[str, Any]
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> CacheGroups:
+        from omegaconf import OmegaConf
+
+        def plain(group: str) -> dict[str, Any]:
+            block = cfg.get(group)
+            return OmegaConf.to_container(block, resolve=True) if OmegaConf.is_config(block) else dict(block)
+
+        return cls(*(plain(g) for g in CACHE_GROUPS))
+
+    @property
+    def log2_hashmap_size(self) -> Any:
+        """``encoding.position.log2_hashmap_size`` (``auto``: sized by the renderer's training paths)."""
+        position = self.encoding.get("position")
+        return position.get("log2_hashmap_size") if isinstance(position, dict) else None
+
+
+@dataclass(frozen=True)
+class NRCRendererSettings:
+    """Everything ``renderer=nrc`` reads, typed and validated once (:meth:`from_app_config`), its ``auto`` rules
+    resolved for a scene by :func:`resolve_auto` before the renderer is built: one settings object per component,
+    passed whole (:class:`nrc.render.radiance_caching.NRCRenderer` takes this, never the raw config)."""
+
+    nrc: NRCSettings  # the ``renderer`` block
+    frames: int
+    display: Any  # nrc.io.png.DisplaySettings: ``tonemap``, ``exposure`` (the logged images)
+    batch_filter: Any  # nrc.render.radiance_caching.batch_filter.BatchFilter (``batch_filter`` group)
+    transmittance: Any  # nrc.transport.transmittance.Transmittance (``transmittance`` group)
+    cache: CacheGroups | None  # None: no cache groups read (a cache is handed to the renderer)
+    config_yaml: str = ""  # the composed config, kept in checkpoints (``renderer.resume`` checks it)
+    resolved: bool = False  # the auto rules below and in ``nrc.training`` are resolved (:func:`resolve_auto`)
+    optical_depth: float | None = None  # median optical depth over the camera rays, when an auto rule needed it
+    regime: str | None = None  # ``thick`` | ``moderate`` (:func:`auto_training_regime`), when an auto rule needed it
+
+    @classmethod
+    def from_app_config(cls, cfg: Any, own_cache: bool = True) -> NRCRendererSettings:
+        """From the app config (``renderer``, ``frames``, ``batch_filter``, ``transmittance``, ``tonemap``,
+        ``exposure`` and, with ``own_cache``, ``cache``, ``encoding``, ``extra_inputs``); ``ConfigError`` naming the
+        key."""
+        from omegaconf import DictConfig, OmegaConf
+
+        from nrc.io.png import DisplaySettings
+        from nrc.render.radiance_caching.batch_filter import make_batch_filter
+        from nrc.transport.transmittance import make_transmittance
+
+        nrc = NRCSettings.from_config(cfg.renderer)
+        frames = app_checks(cfg, own_cache=own_cache)
+        return cls(nrc, frames, DisplaySettings.from_config(cfg), make_batch_filter(cfg.batch_filter),
+                   make_transmittance(cfg.get("transmittance")), CacheGroups.from_config(cfg) if own_cache else None,
+                   OmegaConf.to_yaml(cfg) if isinstance(cfg, DictConfig) else "")
+
+    def resolved_for(self, scene: Any) -> NRCRendererSettings:
+        """These settings with their ``auto`` rules resolved for ``scene`` (:func:`resolve_auto`)."""
+        return resolve_auto(self, scene)
+
+
+def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettings:
+    """The ``auto`` rules of ``renderer=nrc`` resolved for ``scene`` (a no-op on resolved settings): the training
+    image sized to the pixels that see the medium (:func:`~nrc.render.radiance_caching.training_set.
+    auto_training_size`), and, where ``unbiased_fraction``, ``carry_frames`` or the renderer's own cache's
+    ``encoding.position.log2_hashmap_size`` is ``auto``, the scene's regime (:func:`auto_training_regime`: thick =
+    median optical depth >= 40, static camera and lights) and the values that follow from it."""
+    if settings.resolved:
+        return settings
+    from nrc.render.radiance_caching.training_set import auto_training_size, medium_pixel_mask
+
+    st, tr = settings.nrc, settings.nrc.training
+    cam = scene.camera
+    if tr.auto:
+        w, h = auto_training_size(int(medium_pixel_mask(cam, scene.grid).sum()), cam.width, cam.height, tr.paths_per_pixel, tr.min_paths,
+                                  tr.max_paths)
+        tr = replace(tr, width=w, height=h)
+    hash_auto = settings.cache is not None and settings.cache.log2_hashmap_size == "auto"
+    regime, tau = None, None
+    if tr.unbiased_fraction is None or tr.carry_frames is None or hash_auto:
+        regime, tau = auto_training_regime(scene, st.animate)
+        if tr.unbiased_fraction is None:
+            tr = replace(tr, unbiased_fraction=UNBIASED_FRACTION[regime])
+        if tr.carry_frames is None:
+            tr = replace(tr, carry_frames=auto_carry_frames(regime, scene.albedo))
+    return replace(settings, nrc=replace(st, training=tr), resolved=True, optical_depth=tau,
+                   regime=regime)

@@ -17,7 +17,7 @@ each is deterministic for a fixed seed, and because an overlapped job always run
 starts, a checkpoint (written after :meth:`Trainer.join`) resumes exactly.
 
 Off by default: on 2 cores the overlapped frame was no faster (the two threads, both Python loops of short ops, wait
-on each other for the interpreter lock; docs/benchmarks.md, "Training beside the tail; fused calls; the training
+on each other for the interpreter lock; docs/measurements/nrc_frames.md, "Training beside the tail; fused calls; the training
 budget").
 """
 

@@ -38,13 +38,13 @@ from nrc.transport.rng import uniforms as counter_uniforms
 
 REFILL_EVERY = 4  # calls between refills while the camera queue lasts (finished slots idle ~1.5 steps)
 # calls between vertex passes: slots at a vertex wait ~0.5 step longer (+3.6 % slot-steps) for half the
-# passes' fixed cost (nonzero, gathers; eager): ~+15 % samples/s at 2 threads (docs/benchmarks.md)
+# passes' fixed cost (nonzero, gathers; eager): ~+15 % samples/s at 2 threads (docs/measurements/speed.md)
 SCATTER_EVERY = 2
 # once the queue is empty, compact when fewer than this fraction of the slots are live (every step's cost grows
 # with the slot count; NRC frame at 160x90, trace: 0.5 -> 0.26 s compiled / 0.76 s eager, 0.9 -> 0.25 / 0.67 s)
 COMPACT_BELOW = 0.9
 # once the queue is empty and at most this many slots are live, the tail runs fused calls (Machine.advance: a
-# tracking step and the vertices it reaches, one thread), TAIL_CALLS between harvests (docs/benchmarks.md)
+# tracking step and the vertices it reaches, one thread), TAIL_CALLS between harvests (docs/measurements/nrc_frames.md)
 TAIL_SLOTS = 256
 TAIL_CALLS = 16
 # the tail harvests (and compacts) once more than this fraction of its slots is free, or all are

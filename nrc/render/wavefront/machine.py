@@ -42,7 +42,7 @@ HEARTBEAT_S = 20.0  # a compile says it is still going this often
 MIN_SLOTS = 64  # compaction never goes below this (dynamic-shape kernels specialise sizes 0 and 1)
 # Inductor options. The tracking step is vectorised (SIMD C++); the vertex, which runs on the few percent of
 # slots at a real collision, is not: its vector code generation took about half of a cold compile and bought
-# nothing measurable (docs/benchmarks.md). GPUs (Triton) ignore the C++ options.
+# nothing measurable (docs/measurements/speed.md). GPUs (Triton) ignore the C++ options.
 # The C++ kernels are specialised on the process's thread count (part of the cache key): a process with
 # another count (a joblib worker gets cores / n_jobs) compiles its own entry once. (cpp.dynamic_threads would
 # avoid that, but its kernels were not reused from the cache at all in torch 2.13.)
@@ -54,7 +54,7 @@ ADVANCE_OPTIONS = {"assert_indirect_indexing": False, "cpp.vec_isa_ok": False, "
 RECOMPILE_LIMIT = 64  # structures per process before Dynamo would fall back to eager (default 8)
 # Where the step is compiled ahead of time into a package (torch.export + AOTInductor) that a later process loads
 # in milliseconds without Dynamo (torch.compile re-traces both functions on every start, ~3.4 s, before its cache
-# hits): the CPU, measured (docs/benchmarks.md, "Start-up"). CUDA keeps torch.compile until a GPU run has checked
+# hits): the CPU, measured (docs/measurements/speed.md, "Start-up"). CUDA keeps torch.compile until a GPU run has checked
 # the packages there. A step whose export fails falls back to torch.compile.
 AOT_DEVICES = ("cpu",)
 _aot_built = 0  # AOT packages built by this process (part of compiled_graphs())

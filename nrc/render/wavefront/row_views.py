@@ -5,7 +5,7 @@ straight into the stacked buffer: the wrapper declares one tensor view per row (
 ..., offset)``, marked ``// alias``) only to hand ``view.data_ptr()`` to the step's one fused kernel. Each view is
 a heap-allocated tensor made and freed on every call: 156 of them a call in NRC's step (59 float and 16 integer
 state rows, input and output), ~0.2 µs each, most of what a call costs at a few live slots
-(docs/benchmarks.md, "Row views").
+(docs/measurements/nrc_frames.md, "Row views").
 
 :func:`raw_row_views` rewrites each such view into a pointer into its base buffer, ``base + offset`` elements, but
 only where that is the same thing: the view is used nowhere but as ``view.data_ptr()``, its base was allocated in

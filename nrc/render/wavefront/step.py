@@ -45,8 +45,9 @@ from torch import Tensor
 
 from nrc.render.wavefront.program import VertexProgram
 from nrc.render.wavefront.state import DONE, ESCAPED, FLIGHT, QUERY, VERTEX, Layout, PathState, where3
-from nrc.transport.light_sampling import LightSampler, LightTable, power_heuristic, resample
+from nrc.transport.light_sampling import LightSampler, LightTable, power_heuristic
 from nrc.transport.phase import hg_pdf, hg_sample_v3
+from nrc.transport.ris import resample
 from nrc.transport.rng import uniforms as counter_uniforms
 from nrc.transport.tracking import ratio_step
 from nrc.volume.box import box_exit

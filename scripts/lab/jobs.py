@@ -3,8 +3,8 @@
 
 Equal-time ratios compare times measured in different jobs, so they hold only when every job had a machine of one
 type to itself: ``local`` runs the jobs one after another on this machine, ``slurm`` gives each a node of its own
-(``--exclusive``), and the results say where they ran (:func:`nrc.evaluation.speed_vs_error.machine_type`, the node, the threads); a report built
-from them refuses to mix machine types (:func:`check_one_machine_type`).
+(``--exclusive``), and the results say where they ran (:func:`lab.machine.machine`, the node, the threads); a
+report built from them refuses to mix machine types (:func:`check_one_machine_type`).
 """
 
 from __future__ import annotations
