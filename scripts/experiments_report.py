@@ -688,7 +688,8 @@ def readme_results(docs: Path) -> list[str]:
             text += f"; with a warm cache ({n_warm} frames) it still loses: " + ", ".join(at(p) for p in warm)
     warm_of = {p["point"]: p for p in warm}
     rows = [f"| point | optical depth | albedo | NRC+OIDN / PT+OIDN, {n_cold} frames | "
-            f"NRC+OIDN / PT+OIDN, {n_warm or 'more'} frames (warm) | NRC+OIDN mean / reference |",
+            f"NRC+OIDN / PT+OIDN, {n_warm or 'more'} frames (warm) | NRC+OIDN image mean / reference's, "
+            f"{n_cold} frames |",
             "|---|---:|---:|---:|---:|---:|"]
     for p in sorted(cold, key=lambda p: (p["albedo"], p["tau_median"])):
         w = warm_of.get(p["point"])

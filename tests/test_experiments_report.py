@@ -71,7 +71,7 @@ def test_the_block_states_the_finding_a_table_and_the_map(docs):
     assert sentence.count(". ") == 0 and sentence.endswith("(below 1: NRC wins).")  # one sentence
     table = [line for line in lines if line.startswith("|")]
     assert table[0].startswith("| point | optical depth | albedo | NRC+OIDN / PT+OIDN, 30 frames | "
-                               "NRC+OIDN / PT+OIDN, 150 frames (warm) | NRC+OIDN mean / reference |")
+                               "NRC+OIDN / PT+OIDN, 150 frames (warm) | NRC+OIDN image mean / reference's, 30 frames |")
     rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]] for r in table[2:]}
     assert rows["p0"] == ["7", "0.99", "7.9", "–", "0.95"] and rows["p1"] == ["98", "0.99", "1.7", "0.77", "0.95"]
     assert list(rows) == ["p3", "p0", "p1", "p2"]  # by albedo, then optical depth
