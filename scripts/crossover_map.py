@@ -38,30 +38,7 @@ from pathlib import Path
 
 from lab import REPO
 from lab.jobs import check_one_machine_type, run_commands
-VDB = "../shared/data/wdas_cloud_sixteenth.vdb"  # relative to the repo root, where everything runs (results name no machine path)
-# name -> (scene overrides on top of the thick preset, reference spp)
-POINTS: dict[str, tuple[list[str], int]] = {
-    "d0.35": (["scene.volume.density_scale=0.35"], 2048),
-    "d0.6": (["scene.volume.density_scale=0.6"], 2048),
-    "d2": (["scene.volume.density_scale=2"], 512),
-    "d5": ([], 1024),
-    "d10": (["scene.volume.density_scale=10"], 512),
-    "d5_a0.95": (["scene.volume.albedo=0.95"], 1024),
-    "d5_a1": (["scene.volume.albedo=1.0", "scene.integrator.max_scatter=2048"], 512),
-}
-
-
-def optical_depth(overrides: list[str]) -> dict:
-    from nrc.config import absolute_paths, compose
-    from nrc.scene import load_scene
-    from nrc.volume.optical_depth import scene_optical_depth
-
-    cfg = compose(overrides)
-    absolute_paths(cfg)
-    scene = load_scene(cfg.scene, cfg.device)
-    od = scene_optical_depth(scene)
-    return {"tau_median": od.median, "tau_reduced_median": od.median_reduced, "albedo": scene.albedo,
-            "density_scale": float(cfg.scene.volume.density_scale)}
+from lab.points import POINTS, optical_depth, point_scene, require_references
 
 
 def pick(summary: dict, config: str, baseline: str, cold: bool = False) -> dict | None:
@@ -79,15 +56,7 @@ def pick(summary: dict, config: str, baseline: str, cold: bool = False) -> dict 
 
 def run_jobs(todo: dict[str, list[str]], scenes: dict[str, tuple[list[str], int]], args: argparse.Namespace) -> None:
     """Each point of ``todo`` as a submitit job (see the module docstring); returns when all are done."""
-    from nrc.config import compose
-    from nrc.evaluation.reference import default_reference_path
-
-    for name, (scene, ref_spp) in scenes.items():
-        ref = default_reference_path(compose(scene), ref_spp)
-        if not ref.is_file():
-            raise SystemExit(f"crossover_map: point {name} has no reference {os.path.relpath(ref, REPO)}: render it "
-                             f"first, e.g. python -m nrc.reference_app {' '.join(scene)} "
-                             f"scene.integrator.spp={ref_spp} (docs/running.md)")
+    require_references(scenes, "crossover_map")
     run_commands(todo, args.jobs, args.out / ".jobs", REPO, args.slurm)
 
 
@@ -125,12 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     points = {}
     for name in args.points.split(","):
-        if name not in POINTS:
-            raise SystemExit(f"crossover_map: unknown point {name!r} (known: {', '.join(POINTS)})")
-        ovs, ref_spp = POINTS[name]
+        scene, ref_spp = point_scene(name, args.width, args.height, "crossover_map")
         ref_spp = args.ref_spp or ref_spp
-        scene = ["scene=thick", f"scene.volume.path={VDB}", f"scene.camera.width={args.width}",
-                 f"scene.camera.height={args.height}", *ovs, *extra]
+        scene = [*scene, *extra]
         out = args.out / name
         cmd = [sys.executable, str(REPO / "scripts" / "speed_vs_error.py"), "--denoise", "--configs", "", "--preset",
                "none", "--config", f"pt_compiled={args.pt}", "--config", f"nrc={args.nrc}",

@@ -546,26 +546,13 @@ def part_path(out: Path, name: str) -> Path:
     return Path(out) / "configs" / f"{name}.json"
 
 
-def _without_jobs(argv: list[str]) -> list[str]:
-    """``argv`` without ``--jobs`` / ``--slurm`` and their values."""
-    out, skip = [], False
-    for a in argv:
-        if skip:
-            skip = False
-        elif a in ("--jobs", "--slurm"):
-            skip = True
-        elif not a.startswith(("--jobs=", "--slurm=")):
-            out.append(a)
-    return out
-
-
 def run_as_jobs(args: Any, argv: list[str], configs: dict[str, list[str]], base_cfg, log) -> int:
     """``--jobs local|slurm``: each configuration as its own launcher job (:mod:`lab.jobs`), which
     writes its rows to :func:`part_path`; then the tables, ratios and plot of the rows together, as one process
     would write them, refusing rows from different machine types. A configuration whose rows exist is not run
     again (delete them to re-measure). The reference is rendered first, here (``local``), or must exist
     (``slurm``: ``python -m nrc.reference_app``, docs/running.md)."""
-    from lab.jobs import check_one_machine_type, run_commands
+    from lab.jobs import check_one_machine_type, run_commands, without_jobs
 
     start = time.perf_counter()
     path = args.reference or default_reference_path(base_cfg, args.ref_spp)
@@ -574,7 +561,7 @@ def run_as_jobs(args: Any, argv: list[str], configs: dict[str, list[str]], base_
                          f"{' '.join(args.scene_overrides)} scene.integrator.spp={args.ref_spp} (docs/running.md)")
     ref_path, ref = get_reference(base_cfg, args, log)
     script = REPO / "scripts" / "speed_vs_error.py"
-    todo = {name: [sys.executable, str(script), *_without_jobs(argv), "--only", name]
+    todo = {name: [sys.executable, str(script), *without_jobs(argv), "--only", name]
             for name in configs if not part_path(args.out, name).is_file()}
     nodes = run_commands(todo, args.jobs, Path(args.out) / ".jobs", REPO, args.slurm) if todo else {}
     parts = {name: json.loads(part_path(args.out, name).read_text()) for name in configs}

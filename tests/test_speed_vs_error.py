@@ -211,7 +211,9 @@ def test_since_process_start_counts_the_imports(cli):
 
 def test_jobs_arguments_are_stripped_from_the_jobs_command(cli):
     argv = ["--out", "o", "--jobs", "slurm", "--slurm", "partition=cpu", "--slurm=mem_gb=4", "--jobs=local", "x=1"]
-    assert cli._without_jobs(argv) == ["--out", "o", "x=1"]
+    from lab.jobs import without_jobs
+
+    assert without_jobs(argv) == ["--out", "o", "x=1"]
     assert cli.part_path("o", "pt") == __import__("pathlib").Path("o/configs/pt.json")
 
 

@@ -12,6 +12,8 @@ its script; here only what several tools use:
   denoised);
 * :mod:`lab.jobs` -- measurements as submitit jobs, refusing results of mixed machine types;
 * :mod:`lab.machine` -- the one description of the machine a measurement ran on;
+* :mod:`lab.points` -- the named points of the optical-depth measurements (the thick preset's density scales and
+  albedos, their references);
 * :mod:`lab.tables` -- the number format of every generated table, and a result folder's files.
 """
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import platform
 import subprocess
+import sys
 from pathlib import Path
 
 JOB_KINDS = ("local", "slurm")
@@ -28,6 +29,19 @@ def check_one_machine_type(summaries: dict[str, dict], what: str) -> None:
         raise SystemExit(f"{what}: the results were measured on different machine types, which equal-time ratios "
                          "cannot mix: " + "; ".join(f"{', '.join(v)} on {k}" for k, v in kinds.items())
                          + " (re-run the odd ones out on one type: delete their results)")
+
+
+def without_jobs(argv: list[str]) -> list[str]:
+    """``argv`` without ``--jobs`` / ``--slurm`` and their values: a tool's command line as its jobs run it."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a in ("--jobs", "--slurm"):
+            skip = True
+        elif not a.startswith(("--jobs=", "--slurm=")):
+            out.append(a)
+    return out
 
 
 def _run_command(cmd: list[str], cwd: str) -> str:
@@ -56,9 +70,12 @@ def run_commands(todo: dict[str, list[str]], kind: str, folder: Path, cwd: Path,
     if kind not in JOB_KINDS:
         raise SystemExit(f"jobs: unknown kind {kind!r} (known: {', '.join(JOB_KINDS)})")
     try:
+        import cloudpickle
         import submitit
     except ImportError:
         raise SystemExit("jobs: running measurements as jobs needs submitit: pip install -e '.[cluster]'") from None
+    # the job's Python has no scripts/ on its path: this module travels in the job's pickle, not by its name
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
     if kind == "local":
         executor = submitit.LocalExecutor(folder=folder)
         executor.update_parameters(timeout_min=24 * 60)

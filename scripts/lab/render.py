@@ -65,16 +65,21 @@ def warmup_scene(scene: Scene) -> Scene:
 
 
 CPU_TIMES: list[float] = []  # process CPU time of each pt_render call (all threads), read by the callers
+PT_METRICS: dict[str, Any] = {}  # the metrics of the last pt_render call (its backend, ...)
 
 
 def pt_render(scene: Scene, cfg: DictConfig, spp: int, seed: int) -> tuple[np.ndarray, float]:
     """A path-traced render of ``scene`` (``cfg``'s path tracer settings) at ``spp`` spp with ``seed`` (non-finite
-    values 0) and its wall time; its process CPU time is appended to :data:`CPU_TIMES`."""
+    values 0) and its wall time; its process CPU time is appended to :data:`CPU_TIMES`, its metrics kept in
+    :data:`PT_METRICS`."""
     cfg.scene.integrator.spp, cfg.scene.integrator.seed = int(spp), int(seed)
     t0, c0 = time.perf_counter(), time.process_time()
-    image = make_renderer("pt", with_spp_seed(scene, spp, seed), cfg).render(progress=False).image
+    result = make_renderer("pt", with_spp_seed(scene, spp, seed), cfg).render(progress=False)
     CPU_TIMES.append(time.process_time() - c0)
-    return np.nan_to_num(image), time.perf_counter() - t0
+    dt = time.perf_counter() - t0
+    PT_METRICS.clear()
+    PT_METRICS.update(result.metrics)
+    return np.nan_to_num(result.image), dt
 
 
 def pt_warmup(scene: Scene, cfg: DictConfig) -> None:
