@@ -292,11 +292,42 @@ def write_point(res: dict, out: Path) -> None:
     plot(res, out / "curve.png")
 
 
+def point_order(res: dict) -> int:
+    """A result's place in :data:`POINTS` (the crossover map's order: thin to thick, then the albedos)."""
+    return list(POINTS).index(res["point"]) if res["point"] in POINTS else len(POINTS)
+
+
 def write_summary(out: Path) -> Path:
     """``out/summary.md`` over every point in ``out`` (each ``out/<point>/curve.json``)."""
-    results = [json.loads(p.read_text()) for p in sorted(out.glob("*/curve.json"))]
+    results = sorted((json.loads(p.read_text()) for p in out.glob("*/curve.json")), key=point_order)
     (out / "summary.md").write_text(summary_markdown(results))
     return out / "summary.md"
+
+
+def comparison_markdown(results: list[dict], frames: tuple[int, ...] = (5, 10, 20, 30)) -> str:
+    """The variants side by side, point by point: NRC's frame time, NRC+OIDN / PT+OIDN at ``frames`` (each
+    variant against the path tracer of its own run), NRC+OIDN's image mean at frames 10 and 30, the crossing frame."""
+    head = " | ".join(f"@{f}" for f in frames)
+    lines = ["NRC+OIDN / PT+OIDN at equal time per frame from an untrained cache, per variant (means over the seeds; "
+             "below 1: NRC wins); NRC+OIDN's image mean over the reference's at frames 10 and 30.", "",
+             f"| point | variant | NRC overrides | seeds | NRC frame (s) | {head} | mean @10 | mean @30 | crosses at |",
+             "|---|---|---|---:|---:|" + "---:|" * len(frames) + "---:|---:|---:|"]
+    for res in sorted(results, key=lambda r: (point_order(r), r["settings"]["label"] != "default",
+                                              r["settings"]["label"])):
+        c, s = res["curve"], res["settings"]
+        ratios = " | ".join(fmt(at_frame(c, f, "ratio_oidn"), 2) for f in frames)
+        lines.append(f"| {res['point']} | {s['label']} | {' '.join(s['nrc_overrides']) or '–'} | {s['seeds']} | "
+                     f"{fmt(res['nrc_frame_s'])} | {ratios} | {fmt(at_frame(c, 10, 'mean_ratio_oidn'))} | "
+                     f"{fmt(at_frame(c, 30, 'mean_ratio_oidn'))} | {fmt(res['crossing_frame'])} |")
+    kinds = sorted({r["machine"] for r in results})
+    return "\n".join(lines + ["", "Machine: " + "; ".join(kinds)]) + "\n"
+
+
+def write_comparison(root: Path) -> Path:
+    """``root/comparison.md`` over every variant in ``root`` (each ``root/<variant>/<point>/curve.json``)."""
+    results = [json.loads(p.read_text()) for p in root.glob("*/*/curve.json")]
+    (root / "comparison.md").write_text(comparison_markdown(results))
+    return root / "comparison.md"
 
 
 def parser() -> argparse.ArgumentParser:
@@ -357,6 +388,7 @@ def main(argv: list[str] | None = None) -> int:
             write_point(measure(name, scene, ref_spp, args), out / name)
             print(f"[{name}] done in {time.perf_counter() - t0:.0f} s: {out / name / 'curve.md'}", flush=True)
     print(write_summary(out).read_text())
+    print(f"variants side by side: {write_comparison(out.parent)}")
     return 0
 
 

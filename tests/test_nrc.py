@@ -12,6 +12,7 @@ import torch
 from conftest import assert_images_agree, compose
 from nrc.errors import ConfigError
 from nrc.render.radiance_caching.inference_filter import filtered_query
+from nrc.render.radiance_caching.settings import THICK_OPTICAL_DEPTH
 from nrc.render.registry import make_renderer
 from nrc.transport.rng import RandomSource
 from nrc.render.radiance_caching.training_set import training_positions
@@ -718,7 +719,7 @@ def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
         c = compose([*base, f"renderer.training.width={w}", f"renderer.training.height={h}",
                      f"scene.volume.density_scale={density}", "encoding.position.n_levels=2"])
         own = make_renderer("nrc", load_scene(c.scene), c)
-        assert (own.optical_depth >= 40) == (density == 1)
+        assert (own.optical_depth >= THICK_OPTICAL_DEPTH) == (density == 1)
         assert own.cache.log2_hashmap_size == log2
         assert own.cache.network.encoding.encodings[0].hashmap_size == 2**log2
     with pytest.raises(ConfigError, match="both be auto"):
@@ -785,9 +786,20 @@ def test_flicker_in_metrics_and_lower_when_frames_accumulate():
     assert acc.metrics["flicker"] < 0.6 * each.metrics["flicker"]
 
 
+def test_the_thick_regime_starts_at_optical_depth_25():
+    """The regime's boundary (docs/nrc.md, "Learning speed"): a cloud of median optical depth 30 -- between the
+    measured moderate point (12) and the one that learned twice as fast as thick (39) -- is thick; 22 is moderate."""
+    from nrc.render.radiance_caching.settings import auto_training_regime
+
+    assert THICK_OPTICAL_DEPTH == 25.0
+    for density, want in ((1.5, "moderate"), (2.0, "thick")):
+        regime, tau = auto_training_regime(load_scene(compose([*SMALL, f"scene.volume.density_scale={density}"]).scene))
+        assert regime == want and (tau >= THICK_OPTICAL_DEPTH) == (want == "thick") and 20 < tau < 35
+
+
 def test_auto_unbiased_fraction_follows_the_optical_depth():
     """training.unbiased_fraction=auto: half the training paths run to the end in a thick cloud (median optical
-    depth over the camera rays >= 40) under a static camera and light, a quarter in a moderate one or animated;
+    depth over the camera rays >= THICK_OPTICAL_DEPTH, 25) under a static camera and light, a quarter in a moderate one or animated;
     carry_frames=auto: 4 in the thick cloud of albedo >= 0.99, 0 else; a fixed number stays as given; other words
     are config errors naming the key."""
     from nrc.render.radiance_caching.settings import NRCSettings, auto_unbiased_fraction
@@ -803,7 +815,7 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
                    "renderer.training.carry_frames=auto", "scene.volume.density_scale=4"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None
     r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
-    assert r.settings.training.unbiased_fraction == 0.5 and r.optical_depth >= 40
+    assert r.settings.training.unbiased_fraction == 0.5 and r.optical_depth >= THICK_OPTICAL_DEPTH
     assert r.settings.training.carry_frames == 4 and r.tracer.carry_frames == 4  # carry_frames=auto: thick
     grey = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",  # only where
                     "renderer.training.carry_frames=auto", "scene.volume.density_scale=4", "scene.volume.albedo=0.95"])

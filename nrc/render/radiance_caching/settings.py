@@ -173,7 +173,7 @@ def _carry_frames(tr: ConfigReader) -> int | None:
     return tr.get_int("carry_frames", lo=0)
 
 
-THICK_OPTICAL_DEPTH = 40.0  # auto: a scene whose median optical depth reaches this is thick (docs/scenes.md)
+THICK_OPTICAL_DEPTH = 25.0  # auto: a scene whose median optical depth reaches this is thick (docs/nrc.md, "Learning speed")
 UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/measurements/nrc_defaults.md)
 CARRY_FRAMES = {"moderate": 0, "thick": 4}  # auto's two values (docs/nrc.md, "Current defaults and why")
 CARRY_MIN_ALBEDO = 0.99  # auto carries only in a medium at least this white (cloud water; docs/measurements/nrc_frames.md)
@@ -330,7 +330,7 @@ def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettin
     image sized to the pixels that see the medium (:func:`~nrc.render.radiance_caching.training_set.
     auto_training_size`), and, where ``unbiased_fraction``, ``carry_frames`` or the renderer's own cache's
     ``encoding.position.log2_hashmap_size`` is ``auto``, the scene's regime (:func:`auto_training_regime`: thick =
-    median optical depth >= 40, static camera and lights) and the values that follow from it."""
+    median optical depth >= :data:`THICK_OPTICAL_DEPTH`, static camera and lights) and the values that follow from it."""
     if settings.resolved:
         return settings
     from nrc.render.radiance_caching.training_set import auto_training_size, medium_pixel_mask
