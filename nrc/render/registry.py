@@ -58,5 +58,5 @@ def make_renderer(name: str, scene: Any, cfg: Any, **kwargs: Any) -> Any:
     read once and resolved (:func:`renderer_settings`), then the renderer (``kwargs``: the renderer's own, e.g.
     NRC's ``cache``, a stub the tests inject)."""
     options = {"own_cache": False} if kwargs.get("cache") is not None else {}
-    return _load(name, 0)(scene, renderer_settings(name, cfg, scene, **options), **kwargs)
+    return build_renderer(name, scene, renderer_settings(name, cfg, scene, **options), **kwargs)
 

@@ -35,13 +35,11 @@ def point_scene(name: str, width: int, height: int, tool: str) -> tuple[list[str
 def optical_depth(overrides: list[str]) -> dict:
     """The median optical depth (plain and reduced) over the camera rays that see the medium, the albedo and the
     density scale of the scene ``overrides`` configure (``nrc.volume.optical_depth``)."""
-    from nrc.config import absolute_paths, compose
-    from nrc.scene import load_scene
+    from lab.render import setup
     from nrc.volume.optical_depth import scene_optical_depth
 
-    cfg = compose(overrides)
-    absolute_paths(cfg)
-    scene = load_scene(cfg.scene, cfg.device)
+    run = setup(overrides, absolute=True)
+    cfg, scene = run.cfg, run.scene
     od = scene_optical_depth(scene)
     return {"tau_median": od.median, "tau_reduced_median": od.median_reduced, "albedo": scene.albedo,
             "density_scale": float(cfg.scene.volume.density_scale)}

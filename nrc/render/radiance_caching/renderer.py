@@ -57,7 +57,7 @@ from nrc.render.radiance_caching.ring_buffer import RingBuffer, TrainingRecords
 from nrc.render.radiance_caching.settings import NRCRendererSettings, resolve_auto, ring_size
 from nrc.render.radiance_caching.signals import StopOnSignal
 from nrc.render.radiance_caching.trainer import Trainer, TrainingJob
-from nrc.render.radiance_caching.training_set import (frame_records, medium_pixel_mask, training_positions,
+from nrc.render.radiance_caching.training_set import (frame_records, training_positions,
                                                       training_targets)
 from nrc.render.result import RenderResult
 from nrc.render.reuse import make_reuse
@@ -95,7 +95,7 @@ class NRCRenderer:
         self.settings = st = settings.nrc
         self.frames, self.display, self.batch_filter = settings.frames, settings.display, settings.batch_filter
         tr = st.training
-        self.medium_mask = medium_pixel_mask(scene.camera, scene.grid)  # (H, W) bool: the flicker figure's pixels
+        self.medium_mask = settings.medium_mask  # (H, W) bool: the flicker figure's pixels (resolve_auto's)
         self.medium_pixels = int(self.medium_mask.sum())
         self.optical_depth = settings.optical_depth  # the median over the camera rays, when an auto rule needed it
         if cache is None and settings.cache is None:

@@ -7,7 +7,7 @@ config blocks (:class:`nrc.config.ConfigReader`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from nrc.config import ConfigReader
@@ -302,6 +302,10 @@ class NRCRendererSettings:
     resolved: bool = False  # the auto rules below and in ``nrc.training`` are resolved (:func:`resolve_auto`)
     optical_depth: float | None = None  # median optical depth over the camera rays, when an auto rule needed it
     regime: str | None = None  # ``thick`` | ``moderate`` (:func:`auto_training_regime`), when an auto rule needed it
+    # (H, W) bool, the pixels whose camera ray meets the medium's box: derived from the scene by :func:`resolve_auto`
+    # (the training image's size and the renderer's flicker figure read it; computed once, it costs a pass over
+    # every pixel)
+    medium_mask: Any = field(default=None, repr=False, compare=False)
 
     @classmethod
     def from_app_config(cls, cfg: Any, own_cache: bool = True) -> NRCRendererSettings:
@@ -337,8 +341,9 @@ def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettin
 
     st, tr = settings.nrc, settings.nrc.training
     cam = scene.camera
+    mask = medium_pixel_mask(cam, scene.grid)
     if tr.auto:
-        w, h = auto_training_size(int(medium_pixel_mask(cam, scene.grid).sum()), cam.width, cam.height, tr.paths_per_pixel, tr.min_paths,
+        w, h = auto_training_size(int(mask.sum()), cam.width, cam.height, tr.paths_per_pixel, tr.min_paths,
                                   tr.max_paths)
         tr = replace(tr, width=w, height=h)
     hash_auto = settings.cache is not None and settings.cache.log2_hashmap_size == "auto"
@@ -350,4 +355,4 @@ def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettin
         if tr.carry_frames is None:
             tr = replace(tr, carry_frames=auto_carry_frames(regime, scene.albedo))
     return replace(settings, nrc=replace(st, training=tr), resolved=True, optical_depth=tau,
-                   regime=regime)
+                   regime=regime, medium_mask=mask)
