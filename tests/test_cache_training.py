@@ -95,6 +95,25 @@ def test_ema_follows_debiased_recursion():
     assert model.weight.item() == ws[-1]  # the raw weights are untouched
 
 
+def test_ema_window_fraction_bounds_the_average_to_recent_steps():
+    model = nn.Linear(1, 1, bias=False)
+    plain, young = WeightEMA(model, 0.99), WeightEMA(model, 0.99, window_fraction=0.25)
+    assert [young.rate(k) for k in (1, 5)] == [1.0, pytest.approx(0.5)]  # 1 / (1 + f (k - 1))
+    assert young.rate(2000) == pytest.approx(plain.rate(2000))  # window at 1/(1-alpha): the plain EMA
+    assert all(young.rate(k) >= plain.rate(k) for k in range(1, 3000))
+    assert WeightEMA(model, 0.99, window_fraction=1.0).rate(7) == pytest.approx(plain.rate(7))
+    for ema in (plain, young):  # 40 steps of 0 then 40 of 1: the windowed average has forgotten the zeros
+        for k in range(80):
+            with torch.no_grad():
+                model.weight.fill_(float(k >= 40))
+            ema.update()
+    assert plain.shadow.weight.item() == pytest.approx((1 - 0.99**40) / (1 - 0.99**80), rel=1e-5)  # ~0.60
+    # prod over k = 41..80 of (1 - 1 / (1 + (k - 1) / 4)) = 40*41*42*43 / (80*81*82*83): ~0.067 of the zeros left
+    assert young.shadow.weight.item() == pytest.approx(1 - 40 * 41 * 42 * 43 / (80 * 81 * 82 * 83), rel=1e-5)
+    with pytest.raises(ValueError, match="window_fraction"):
+        WeightEMA(model, 0.99, window_fraction=0.0)
+
+
 def test_ema_weights_serve_queries_and_raw_weights_train():
     grid = _grid()
     cache = _cache(grid)
@@ -125,6 +144,53 @@ def test_adam_groups_follow_tcnn_conventions():
     assert isinstance(hashgrid, HashGridEncoding) and table["params"] == [hashgrid.table]
     assert (table["lr"], table["eps"], table["weight_decay"]) == (1e-2, 1e-15, 0.0)
     assert all(g["betas"] == (0.9, 0.99) for g in groups)
+
+
+def test_lazy_adam_moves_touched_columns_as_adam_and_leaves_the_rest():
+    from nrc.cache.optim import LazyAdam
+
+    torch.manual_seed(0)
+    init = torch.randn(2, 6)
+    lazy_p, dense_p = nn.Parameter(init.clone()), nn.Parameter(init.clone())
+    lazy = LazyAdam([lazy_p], lr=0.1, betas=(0.9, 0.99), eps=1e-15)
+    dense = torch.optim.Adam([dense_p], lr=0.1, betas=(0.9, 0.99), eps=1e-15)
+    for k in range(3):  # columns 0-3 touched every step: Adam exactly; 4, 5 never: untouched
+        g = torch.zeros(2, 6)
+        g[:, :4] = torch.randn(2, 4)
+        lazy_p.grad, dense_p.grad = g.clone(), g.clone()
+        lazy.step()
+        dense.step()
+    torch.testing.assert_close(lazy_p[:, :4], dense_p[:, :4])
+    assert torch.equal(lazy_p[:, 4:], init[:, 4:])
+    # a column touched once after others took 3 steps: its own step count (1) sets its bias correction
+    g = torch.zeros(2, 6)
+    g[:, 5] = 1.0
+    lazy_p.grad = g
+    before = lazy_p.detach().clone()
+    lazy.step()
+    assert lazy.state[lazy_p]["step"].tolist() == [3, 3, 3, 3, 0, 1]
+    torch.testing.assert_close(lazy_p[:, 5], before[:, 5] - 0.1)  # first Adam step: lr * sign(g)
+    assert torch.equal(lazy_p[:, :5], before[:, :5])
+
+
+def test_lazy_hash_table_cache_trains_and_resumes_exactly():
+    enc = {**HASH_ONEBLOB, "position": {**HASH_ONEBLOB["position"], "lazy": True}}
+    grid = _grid()
+    a = build_radiance_cache(CACHE, enc, {}, grid, "cpu", seed=3)
+    assert len(a.optimizer.param_groups) == 2
+    torch.manual_seed(1)
+    x, d, t = torch.rand(256, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(256, 3), dim=1), torch.rand(256, 3)
+    for _ in range(3):
+        a.train_step(x, d, t)
+    buf = io.BytesIO()
+    torch.save(a.state_dict(), buf)  # as a checkpoint
+    buf.seek(0)
+    b = build_radiance_cache(CACHE, enc, {}, grid, "cpu", seed=3)
+    b.load_state_dict(torch.load(buf, weights_only=True))
+    a.train_step(x, d, t)
+    b.train_step(x, d, t)
+    for pa, pb in zip(a.network.parameters(), b.network.parameters()):
+        assert torch.equal(pa, pb)
 
 
 # ---------------------------------------------------------------- robustness

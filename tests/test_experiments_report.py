@@ -86,7 +86,7 @@ def test_a_missing_map_says_so(tmp_path):
 def test_results_rewrites_the_readme_block_only_and_is_idempotent(docs, tmp_path, capsys):
     path = tmp_path / "README.md"
     path.write_text(readme())
-    args = ["batch_filters", "--results", "--docs", str(docs), "--root", str(tmp_path / "none"),
+    args = ["--results", "--docs", str(docs),
             "--intro", str(tmp_path / "no_intro.md"), "--readme", str(path)]
     assert load_script("experiments_report").main(args) == 0
     text = path.read_text()
@@ -112,13 +112,12 @@ def test_a_missing_marker_is_one_error_line(docs, tmp_path):
     path = tmp_path / "README.md"
     path.write_text(readme(names=()))
     with pytest.raises(SystemExit) as e:
-        load_script("experiments_report").main(["batch_filters", "--results", "--docs", str(docs),
-                                                 "--root", str(tmp_path / "none"), "--readme", str(path)])
+        load_script("experiments_report").main(["--results", "--docs", str(docs), "--readme", str(path)])
     msg = str(e.value)
     assert msg.startswith("experiments_report: README.md: no line `<!-- generated: scripts/experiments_report.py "
                           "--results: results -->`") and "\n" not in msg
     assert path.read_text() == readme(names=())  # nothing written
-    assert not (docs / "results.md").exists() and not (docs / "results" / "batch_filters.md").exists()
+    assert not (docs / "results.md").exists()
 
 
 @pytest.mark.parametrize("text, says", [
@@ -136,12 +135,9 @@ def test_wrap_never_starts_a_line_with_a_list_marker():
     assert len(lines) > 5 and not any(line.startswith(("+", "-", "1.")) for line in lines)
 
 
-def test_a_report_without_runs_keeps_its_committed_markdown(tmp_path):
-    (tmp_path / "docs" / "results").mkdir(parents=True)
-    kept = tmp_path / "docs" / "results" / "batch_filters.md"
-    kept.write_text("measured table")
-    assert load_script("experiments_report").main(["batch_filters", "--docs", str(tmp_path / "docs"), "--root", str(tmp_path / "none")]) == 0
-    assert kept.read_text() == "measured table"
+def test_without_results_it_says_where_the_thesis_experiments_went(tmp_path):
+    with pytest.raises(SystemExit, match="scripts/theses.py"):
+        load_script("experiments_report").main(["--docs", str(tmp_path / "docs")])
 
 
 def test_crossover_summary_states_where_nrc_pays_off(tmp_path):

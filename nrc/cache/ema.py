@@ -4,6 +4,12 @@
 bias correction; ``ema_1 = w_1``). Since ``alpha mu_{k-1} = mu_k - (1 - alpha)`` this is the update
 ``ema_k = ema_{k-1} + (1 - alpha) / mu_k * (w_k - ema_{k-1})``, one lerp per parameter and step.
 The EMA weights serve inference only; training continues on the raw weights.
+
+Early on the debiased rate is about ``1/k``: a plain average of *every* step so far, the first (untrained) ones
+included, which keeps a young cache dark and late. ``window_fraction`` f < 1 bounds the average to about the last
+``f k`` steps: the rate is ``max((1 - alpha) / mu_k, 1 / (1 + f (k - 1)))``, so the window grows with the cache's
+age until it reaches the EMA's own ``1 / (1 - alpha)`` steps (at ``k ~ 1 / (f (1 - alpha))``), after which the
+update is the plain one. f = 1 is the debiased EMA exactly (``(1 - alpha) / mu_k >= 1 / k`` always).
 """
 
 from __future__ import annotations
@@ -21,10 +27,17 @@ class WeightEMA:
     Args:
         model: the trained module (its raw weights).
         alpha: decay in ``[0, 1)``; 0 makes the shadow equal the raw weights.
+        window_fraction: in ``(0, 1]``: the average spans at most about this fraction of the steps so far
+            (1: the debiased EMA).
     """
 
-    def __init__(self, model: nn.Module, alpha: float) -> None:
+    def __init__(self, model: nn.Module, alpha: float, window_fraction: float = 1.0) -> None:
+        if not 0.0 <= alpha < 1.0:
+            raise ValueError(f"EMA alpha must be in [0, 1), got {alpha}")
+        if not 0.0 < window_fraction <= 1.0:
+            raise ValueError(f"EMA window_fraction must be in (0, 1], got {window_fraction}")
         self.alpha = alpha
+        self.window_fraction = window_fraction
         self.step = 0
         self.model = model
         self.shadow = copy.deepcopy(model).requires_grad_(False).eval()
@@ -33,9 +46,14 @@ class WeightEMA:
     def update(self) -> None:
         """Fold the current raw weights in as ``w_k`` (call after each optimiser step)."""
         self.step += 1
-        rate = (1.0 - self.alpha) / (1.0 - self.alpha**self.step)
+        rate = self.rate(self.step)
         # one call for all parameters (the per-tensor lerp_, batched: the same arithmetic)
         torch._foreach_lerp_(list(self.shadow.parameters()), list(self.model.parameters()), rate)
+
+    def rate(self, k: int) -> float:
+        """The lerp rate of step ``k`` (from 1): the debiased rate, or the age-bounded window's where larger."""
+        debiased = (1.0 - self.alpha) / (1.0 - self.alpha**k)
+        return max(debiased, 1.0 / (1.0 + self.window_fraction * (k - 1)))
 
     def state_dict(self) -> dict[str, Any]:
         return {"step": self.step, "shadow": self.shadow.state_dict()}

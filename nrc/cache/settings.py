@@ -6,7 +6,8 @@ Keys (all validated; unknown keys are errors):
   ``bf16`` (bfloat16 autocast for the MLP only).
 * ``optimizer`` (Adam of the MLP weights): ``lr``, ``beta1``, ``beta2``, ``eps``, ``weight_decay``
   (L2 on MLP weights only). Hash-grid tables take ``lr``/``eps`` from their encoding block.
-* ``ema``: ``alpha`` in ``[0, 1)`` (0.99; 0 disables averaging).
+* ``ema``: ``alpha`` in ``[0, 1)`` (0.99; 0 disables averaging); ``window_fraction`` in ``(0, 1]``: the average
+  spans at most about this fraction of the steps so far (1: the plain debiased EMA; :mod:`nrc.cache.ema`).
 * ``loss``: ``target_clamp`` (> 0, radiance units): targets are clamped to ``[-c, c]``.
 * ``query_chunk``: points per forward pass in :meth:`RadianceCache.query` (bounds memory).
 * ``compile_training``: ``torch.compile`` the training step's forward, loss and backward (dynamic batch size;
@@ -32,6 +33,7 @@ class CacheSettings:
     mlp_adam: AdamSettings
     betas: tuple[float, float]
     ema_alpha: float
+    ema_window_fraction: float
     target_clamp: float
     query_chunk: int
     compile_training: bool = False
@@ -54,6 +56,7 @@ class CacheSettings:
             betas=(opt.get_float("beta1", 0.9, lo=0.0, hi=1.0, hi_open=True),
                    opt.get_float("beta2", 0.99, lo=0.0, hi=1.0, hi_open=True)),
             ema_alpha=ema.get_float("alpha", lo=0.0, hi=1.0, hi_open=True),
+            ema_window_fraction=ema.get_float("window_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0),
             target_clamp=loss.get_float("target_clamp", lo=0.0, lo_open=True),
             query_chunk=cfg.get_int("query_chunk", 1 << 16, lo=1),
             compile_training=cfg.get_bool("compile_training", False),

@@ -14,7 +14,8 @@ Keys per ``otype`` (case-insensitive; unknown keys are errors):
   at most 2^20. ``max_resolution: grid`` sizes the finest level to the medium: the density grid's
   largest dimension in voxels, or ``base_resolution`` if that is larger (finer levels cannot resolve
   anything the grid holds); optimiser keys ``lr``
-  (default 1e-2) and ``eps`` (default 1e-15).
+  (default 1e-2), ``eps`` (default 1e-15) and ``lazy`` (default false: a dense Adam update of every entry; true:
+  tiny-cuda-nn's, entries no batch touched keep their moments, :class:`nrc.cache.optim.LazyAdam`).
 """
 
 from __future__ import annotations
@@ -134,5 +135,6 @@ def _build_hashgrid(cfg: ConfigReader, n_dims: int, generator: torch.Generator,
     if base * scale ** (n_levels - 1) > MAX_RESOLUTION:
         raise ConfigError(f"{cfg.key('per_level_scale')}: the finest resolution N_min b^(L-1) = "
                           f"{base * scale ** (n_levels - 1):.4g} exceeds {MAX_RESOLUTION} (float32 positions)")
-    adam = AdamSettings(lr=cfg.get_float("lr", 1e-2, lo=0.0, lo_open=True), eps=cfg.get_float("eps", 1e-15, lo=0.0))
+    adam = AdamSettings(lr=cfg.get_float("lr", 1e-2, lo=0.0, lo_open=True), eps=cfg.get_float("eps", 1e-15, lo=0.0),
+                        lazy=cfg.get_bool("lazy", False))
     return HashGridEncoding(n_levels, n_features, log2_t, base, scale, generator=generator), adam
