@@ -34,29 +34,18 @@ from typing import Any
 
 import numpy as np
 
-from lab import REPO
-from lab.analysis import baseline_error
+from lab import REPO, repo_relative
+from lab.analysis import baseline_error, ci95
 from lab.jobs import run_commands, without_jobs
 from lab.machine import machine
 from lab.points import POINTS, point_scene, require_references
-from lab.tables import fmt
+from lab.tables import fmt, pm
 
-NRC_SEED_STRIDE = 7919  # run k of NRC uses seed SEED_BASE + stride * (k + 1): its frames' streams apart from run k+1's
 TINY = 1e-12  # floor-corrected errors below the floor's resolution (<= 0) are clipped here for log-log reads
 KEYS = ("rel_mse", "rel_mse_oidn", "mean_ratio", "mean_ratio_oidn")
 
 
 # ---------------------------------------------------------------------------- the pure parts
-def ci95(values: Any) -> tuple[float, float | None]:
-    """Mean of ``values`` and the half-width of its 95 % interval (t-quantile x standard error; None below 2)."""
-    from scipy.stats import t
-
-    x = np.asarray(values, dtype=np.float64)
-    if len(x) < 2:
-        return float(x.mean()), None
-    return float(x.mean()), float(t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
-
-
 def crossing_frame(frames: list[int], nrc: list[float], pt: float | None) -> int | None:
     """The first of ``frames`` from which ``nrc`` (its error there) stays <= ``pt``; None when it never does."""
     cross = None
@@ -89,10 +78,6 @@ def curve_rows(frames: list[int], per_seed: list[list[dict]], pt_oidn: float | N
 
 def at_frame(rows: list[dict], frame: int, key: str) -> Any:
     return next((r[key] for r in rows if r["frame"] == frame), None)
-
-
-def pm(v: float | None, half: float | None) -> str:
-    return fmt(v) if half is None else f"{fmt(v)} ± {fmt(half, 2)}"
 
 
 def markdown(res: dict) -> str:
@@ -204,7 +189,7 @@ def measure(point: str, scene: list[str], ref_spp: int, args: argparse.Namespace
     from tqdm import tqdm
 
     from lab.per_frame import score
-    from lab.render import PT_METRICS, SEED_BASE, nrc_run, pt_render, pt_warmup, setup
+    from lab.render import PT_METRICS, SEED_BASE, nrc_run, pt_render, pt_warmup, run_seeds, setup
     from nrc.evaluation.reference import check_independent, read_reference
     from nrc.metrics import medium_mask
 
@@ -213,7 +198,7 @@ def measure(point: str, scene: list[str], ref_spp: int, args: argparse.Namespace
     ref = read_reference(ref_path)
     if ref.alpha is None:
         raise SystemExit(f"learning_curve: reference {ref_path} has no alpha (A channel); re-render it")
-    nrc_seeds = [SEED_BASE + NRC_SEED_STRIDE * (k + 1) for k in range(args.seeds)]
+    nrc_seeds = run_seeds(args.seeds)
     pt_seeds = [SEED_BASE + 100 * spp + j for spp in args.pt_spp for j in range(args.pt_repeats)]
     check_independent(ref.attrs, [*pt_seeds, *(s + f for s in nrc_seeds for f in range(args.frames))], ref_path)
     floor = ref.rel_mse_floor_medium or 0.0
@@ -275,7 +260,7 @@ def measure(point: str, scene: list[str], ref_spp: int, args: argparse.Namespace
         "nrc_per_seed": [{"seed": seed, "scores": dict(zip(map(str, marks), s))}
                          for seed, s in zip(nrc_seeds, per_seed)],
         "backend": {"requested": args.backend or "auto", "nrc": nrc_backend, "pt": PT_METRICS.get("backend")},
-        "reference": {"path": os.path.relpath(ref_path, REPO) if ref_path.is_relative_to(REPO) else str(ref_path),
+        "reference": {"path": repo_relative(ref_path),
                       "spp": ref.attrs.get("spp"), "rel_mse_floor_medium": ref.rel_mse_floor_medium,
                       "rel_mse_floor": ref.rel_mse_floor, "medium_pixels": int(mask.sum())},
         "settings": {"width": args.width, "height": args.height, "frames": args.frames, "every": args.every,

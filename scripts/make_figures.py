@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from omegaconf import open_dict
 
-from lab import REPO, SHARED_DATA
+from lab import REPO, SHARED_DATA, repo_relative
 from lab.machine import machine
 from lab.render import Setup, setup
 from nrc.config import absolute_paths, compose
@@ -113,7 +113,7 @@ def heroes(args: argparse.Namespace, log: dict[str, Any]) -> None:
         k = auto_exposure(ref.image, "aces")
         tiles.append(_label(tonemap(ref.image, k, "aces"), title))
         log["heroes"][name] = {"spp": args.hero_spp, "exposure": k, "time_s": time.perf_counter() - t0,
-                               "reference": _rel(path), "rel_mse_floor": ref.rel_mse_floor}
+                               "reference": repo_relative(Path(path).resolve()), "rel_mse_floor": ref.rel_mse_floor}
     h, w = tiles[0].shape[:2]
     cols = 2
     rows = math.ceil(len(tiles) / cols)
@@ -212,7 +212,7 @@ def comparison(args: argparse.Namespace, log: dict[str, Any]) -> tuple[float, in
     result = {
         "scene": scene_name, "comparison": args.comparison, "scene_overrides": [_rel_override(o) for o in scene],
         "width": args.width, "height": args.height,
-        "reference": _rel(path), "reference_spp": args.ref_spp, "reference_rel_mse_floor": ref.rel_mse_floor,
+        "reference": repo_relative(Path(path).resolve()), "reference_spp": args.ref_spp, "reference_rel_mse_floor": ref.rel_mse_floor,
         "reference_rel_mse_floor_medium": ref.rel_mse_floor_medium,
         "exposure": exposure, "tonemap": "aces",
         "nrc_settings": {"cache_target": nrc_cfg.renderer.cache_target,
@@ -306,11 +306,6 @@ def animation(args: argparse.Namespace, exposure: float, spp: int, log: dict[str
                         "degrees_per_frame": degrees, "pt_spp": spp,
                         "pt_time_per_frame_s": float(np.median(times["pt"])),
                         "nrc_time_per_frame_s": float(np.median(times["nrc"]))}
-
-
-def _rel(path: Path) -> str:
-    path = Path(path).resolve()
-    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
 
 
 def make_figures(args: Any) -> Any:

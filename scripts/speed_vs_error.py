@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from lab import REPO
+from lab import REPO, repo_relative
 from lab.analysis import DENOISED, add_corrected, all_crossovers, all_ratios, baseline_names, baseline_of
 from lab.machine import machine
 from lab.render import CPU_TIMES, SEED_BASE, nrc_run, nrc_warmup, pt_render, pt_warmup
@@ -501,7 +501,7 @@ def run(args: Any, overrides: list[str], argv: list[str]) -> int:
         meta = {
             # paths relative to the repo root (../shared/...), never this machine's
             "scene": " ".join(args.scene_overrides).replace(str(REPO.parent) + "/", "../") or "defaults", "width": cam.width, "height": cam.height,
-            "reference": str(ref_path.relative_to(REPO) if ref_path.is_relative_to(REPO) else ref_path),
+            "reference": repo_relative(ref_path),
             "ref_spp": ref.attrs.get("spp"), "rel_mse_floor": ref.rel_mse_floor,
             "rel_mse_floor_medium": ref.rel_mse_floor_medium, "medium_pixels": int(mask.sum()),
             "baseline": baseline, "skipped": skipped, "nrc_overrides": args.nrc_overrides,
@@ -573,7 +573,7 @@ def run_as_jobs(args: Any, argv: list[str], configs: dict[str, list[str]], base_
             "nodes": {name: p["meta"].get("node") for name, p in parts.items()},
             "jobs": args.jobs, "wall_time_s": time.perf_counter() - start,
             "job_wall_time_s": {name: p["meta"]["wall_time_s"] for name, p in parts.items()}}
-    meta["reference"] = str(ref_path.relative_to(REPO) if ref_path.is_relative_to(REPO) else ref_path)
+    meta["reference"] = repo_relative(ref_path)
     meta["node"] = ", ".join(dict.fromkeys(str(n) for n in meta["nodes"].values()))
     add_corrected(rows, ref.rel_mse_floor, ref.rel_mse_floor_medium)
     write_outputs(args.out, rows, all_ratios(rows, baseline), all_crossovers(rows, baseline), meta)

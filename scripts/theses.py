@@ -56,13 +56,13 @@ from typing import Any
 
 import numpy as np
 
-from lab import REPO
+from lab import REPO, repo_relative
+from lab.analysis import ci95
 from lab.jobs import run_commands, without_jobs
 from lab.machine import machine
-from lab.tables import fmt
+from lab.tables import fmt, pm
 
 OUT = REPO / "docs" / "theses"
-SEED_STRIDE = 7919  # run k uses SEED_BASE + stride * (k + 1): its frames' seeds apart from run k+1's
 CHROMA_GONE = 0.05  # F-6.1c: the colour distortion is gone from the frame its chroma error stays below this
 Verdict = tuple[str, str]
 VERDICTS = ("agrees", "disagrees", "not comparable")
@@ -107,18 +107,6 @@ LADDER_OURS: list[tuple[str, list[str]]] = [
 
 
 # ---------------------------------------------------------------------------- the pure parts
-def ci95(values: Sequence[float | None]) -> tuple[float | None, float | None]:
-    """Mean of the non-None ``values`` and the half-width of its 95 % interval (None below 2 values)."""
-    from scipy.stats import t
-
-    x = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
-    if len(x) == 0:
-        return None, None
-    if len(x) < 2:
-        return float(x.mean()), None
-    return float(x.mean()), float(t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
-
-
 def chroma(image: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
     """The colour error: the largest over the smallest per-channel mean ratio (over ``mask``) minus 1 (0: the
     image's colour is the reference's, whatever its brightness)."""
@@ -164,10 +152,6 @@ def tail_mean(data: dict, variant: str, key: str, fraction: float = 1 / 3) -> fl
     _, v = series(data, variant, key)
     v = [x for x in v[-max(1, int(len(v) * fraction)):] if x is not None]
     return float(np.mean(v)) if v else None
-
-
-def seeds(runs: int, base: int) -> list[int]:
-    return [base + SEED_STRIDE * (k + 1) for k in range(runs)]
 
 
 def hydra_value(v: Any) -> str:
@@ -704,13 +688,9 @@ def reference_for(nrc_cfg: Any, scale: Scale) -> Any:
     spp = 16 if scale.quick else scale.ref_spp
     path = default_reference_path(compose(pt), spp)
     if not path.is_file():
-        print(f"theses: rendering the reference {os.path.relpath(path, REPO)} ({spp} spp)", flush=True)
+        print(f"theses: rendering the reference {repo_relative(path)} ({spp} spp)", flush=True)
     ref = read_reference(ensure_reference(pt, spp, max(1, min(64, spp // 4))))
     return ref, path, pt
-
-
-def _rel(path: Path) -> str:
-    return os.path.relpath(path, REPO) if Path(path).is_relative_to(REPO) else str(path)
 
 
 def variant_setup(exp: Experiment, scale: Scale, variant: list[str], extra: Sequence[str]) -> tuple:
@@ -727,7 +707,7 @@ def variant_setup(exp: Experiment, scale: Scale, variant: list[str], extra: Sequ
 def measure_curve(exp: Experiment, scale: Scale, extra: Sequence[str] = ()) -> dict:
     from tqdm import tqdm
 
-    from lab.render import SEED_BASE, nrc_run
+    from lab.render import nrc_run, run_seeds
     from nrc.metrics import error_report, mean_ratio, rel_mse
 
     runs, frames = scale.runs_of(exp), scale.frames_of(exp)
@@ -738,7 +718,7 @@ def measure_curve(exp: Experiment, scale: Scale, extra: Sequence[str] = ()) -> d
         per_run: list[list[dict]] = []
         last: list[np.ndarray] = []
         with tqdm(total=runs * frames, desc=f"{exp.id} {name}", unit="frame", disable=scale.quiet) as bar:
-            for seed in seeds(runs, SEED_BASE):
+            for seed in run_seeds(runs):
                 rows: list[dict] = []
                 prev: list[np.ndarray | None] = [None]
 
@@ -768,14 +748,14 @@ def measure_curve(exp: Experiment, scale: Scale, extra: Sequence[str] = ()) -> d
             table.append(row)
         final = error_report(np.stack(last), image, mask)["medium"] if len(last) >= 2 and mask.any() else None
         out["variants"][name] = {"rows": table, "final": final, "overrides": variant,
-                                 "reference": _rel(ref_path), "reference_floor": floor}
+                                 "reference": repo_relative(ref_path), "reference_floor": floor}
     return out
 
 
 def measure_nrc_vs_pt(exp: Experiment, scale: Scale, extra: Sequence[str] = ()) -> dict:
     from tqdm import tqdm
 
-    from lab.render import SEED_BASE, nrc_run, pt_render, pt_warmup, setup
+    from lab.render import SEED_BASE, nrc_run, pt_render, pt_warmup, run_seeds, setup
     from nrc.metrics import error_report
 
     runs, frames = scale.runs_of(exp), scale.frames_of(exp)
@@ -783,7 +763,7 @@ def measure_nrc_vs_pt(exp: Experiment, scale: Scale, extra: Sequence[str] = ()) 
     for name, variant in exp.variants.items():
         s, ref, ref_path, pt_ovs, image, mask = variant_setup(exp, scale, variant, extra)
         nrc_imgs, trace = [], []
-        for seed in tqdm(seeds(runs, SEED_BASE), desc=f"{exp.id} {name} NRC", unit="run", disable=scale.quiet):
+        for seed in tqdm(run_seeds(runs), desc=f"{exp.id} {name} NRC", unit="run", disable=scale.quiet):
             def on_frame(frame, img, output, stats):
                 if frame >= 1:
                     trace.append(float(stats["time_trace_s"]))
@@ -792,13 +772,13 @@ def measure_nrc_vs_pt(exp: Experiment, scale: Scale, extra: Sequence[str] = ()) 
 
             nrc_run(s.scene, s.cfg, 1, seed, frames, False, on_frame)
         res: dict[str, Any] = {"nrc": sides_metrics(np.stack(nrc_imgs), image, mask, error_report),
-                               "overrides": variant, "reference": _rel(ref_path)}
+                               "overrides": variant, "reference": repo_relative(ref_path)}
         res["nrc"]["trace_s"] = float(np.mean(trace)) if trace else None
         if exp.params.get("pt", True):
             p = setup([*pt_ovs, f"renderer.backend={s.cfg.renderer.backend}"])
             pt_warmup(p.scene, p.cfg)
             imgs, times = [], []
-            for seed in seeds(runs, SEED_BASE + 500):
+            for seed in run_seeds(runs, SEED_BASE + 500):
                 img, dt = pt_render(p.scene, p.cfg, 1, seed)
                 imgs.append(img.astype(np.float64))
                 times.append(dt)
@@ -1011,10 +991,6 @@ def ours_table(exp: Experiment, data: dict) -> list[str]:
     return lines
 
 
-def pm(v: float | None, half: float | None) -> str:
-    return fmt(v) if half is None else f"{fmt(v)} ± {fmt(half, 2)}"
-
-
 def settings_table(exp: Experiment) -> list[str]:
     """The thesis's settings and ours side by side: the keys the thesis config sets, against our defaults."""
     from omegaconf import OmegaConf
@@ -1196,7 +1172,7 @@ def main(argv: list[str] | None = None) -> int:
                          "multiple of 16")
     os.chdir(REPO)  # the configs' VDB path and the references are relative to the repo root
     if args.report:
-        print(f"wrote {_rel(report())}")
+        print(f"wrote {repo_relative(report())}")
         return 0
     if args.threads:
         import torch
@@ -1214,23 +1190,23 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             res = run_experiment(BY_ID[i], dataclasses.replace(scale, explain=True), saved)
             res["seconds"] += saved.get("seconds", 0.0)
-            print(f"[{i}] ladder: {[(s['step'], s['verdict']) for s in res['ladder']]} -> {_rel(write(BY_ID[i], res))}",
+            print(f"[{i}] ladder: {[(s['step'], s['verdict']) for s in res['ladder']]} -> {repo_relative(write(BY_ID[i], res))}",
                   flush=True)
-        print(f"wrote {_rel(report())}")
+        print(f"wrote {repo_relative(report())}")
         return 0
     todo = [i for i in ids if args.force or not fresh(OUT / f"{i}.json", scale)]
     for i in ids:
         if i not in todo:
-            print(f"[{i}] kept {_rel(OUT / f'{i}.json')} (--force to re-run)")
+            print(f"[{i}] kept {repo_relative(OUT / f'{i}.json')} (--force to re-run)")
     if args.jobs != "none" and todo:
         script = [sys.executable, str(REPO / "scripts" / "theses.py"), *without_jobs(argv)]
         run_commands({i: [*script, "--only", i] for i in todo}, args.jobs, OUT / ".jobs", REPO, args.slurm)
     else:
         for i in sorted(todo, key=lambda i: BY_ID[i].reuse is not None):  # a reused measurement first
             res = run_experiment(BY_ID[i], scale)
-            print(f"[{i}] {res['verdict']}: {res['reason']} ({res['seconds']:.0f} s) -> {_rel(write(BY_ID[i], res))}",
+            print(f"[{i}] {res['verdict']}: {res['reason']} ({res['seconds']:.0f} s) -> {repo_relative(write(BY_ID[i], res))}",
                   flush=True)
-    print(f"wrote {_rel(report())}")
+    print(f"wrote {repo_relative(report())}")
     return 0
 
 

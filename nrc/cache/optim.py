@@ -71,7 +71,7 @@ class LazyAdam(torch.optim.Optimizer):
                 tf = t.to(p.dtype)
                 bc1, bc2 = 1.0 - b1**tf, 1.0 - b2**tf
                 update = (m / bc1).div_((v / bc2).sqrt_().add_(group["eps"])).mul_(group["lr"])
-                p.index_copy_(1, cols, p.index_select(1, cols).sub_(update))
+                p.index_add_(1, cols, update, alpha=-1.0)  # cols are unique: p[:, cols] -= update
 
 
 class CacheOptimizer:

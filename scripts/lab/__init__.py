@@ -29,6 +29,12 @@ REPO = Path(__file__).resolve().parents[2]  # the checkout: the lab lives in it 
 SHARED_DATA = REPO.parent / "shared" / "data"  # the Disney cloud and other large inputs, beside the checkout
 
 
+def repo_relative(path: Path | str) -> str:
+    """``path`` relative to the checkout when it lies in it (results and pages name no machine's path), else as is."""
+    path = Path(path)
+    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
+
+
 def exit_status(tool: str, work: Callable[[], object]) -> int:
     """Run ``work``; a user's error (:class:`nrc.errors.NRCError`) becomes one line ``<tool>: error: ...`` on stderr
     and exit status 2, else 0."""

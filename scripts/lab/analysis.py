@@ -1,7 +1,8 @@
 """Equal-time comparisons of renderers: the path tracer's Pareto front (the best error reachable within a time),
 log-log interpolation, equal-time ratios (single frames, or accumulated running means) and crossovers, raw and
 against denoised twins (``+oidn``). Rows are dicts with ``mode``, ``config``, ``renderer``, ``spp``, ``time_s`` and
-the errors (``rel_mse``, ``rel_mse_medium``, ...), as ``scripts/speed_vs_error.py`` writes them."""
+the errors (``rel_mse``, ``rel_mse_medium``, ...), as ``scripts/speed_vs_error.py`` writes them; the mean over
+independent runs with its 95 % interval (:func:`ci95`)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,19 @@ import numpy as np
 
 
 DENOISED = "+oidn"  # suffix of a configuration's denoised twin
+
+
+def ci95(values: Any) -> tuple[float | None, float | None]:
+    """Mean of the finite, non-None ``values`` and the half-width of its 95 % interval (t-quantile x standard
+    error; None below 2 values; ``(None, None)`` without any)."""
+    from scipy.stats import t
+
+    x = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
+    if len(x) == 0:
+        return None, None
+    if len(x) < 2:
+        return float(x.mean()), None
+    return float(x.mean()), float(t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
 
 
 def loglog_interp(t: float, ts: list[float], es: list[float]) -> float:

@@ -17,6 +17,13 @@ from nrc.render.registry import make_renderer
 from nrc.scene import Scene, load_scene
 
 SEED_BASE = 1000  # seeds of the scored renders; references use seeds >= 1e6 (nrc.evaluation.reference.REF_SEED)
+RUN_SEED_STRIDE = 7919  # run k of a repeated NRC measurement: seed base + stride * (k + 1), its frames' seeds apart
+# from run k+1's (a frame's seed is the run's plus the frame index)
+
+
+def run_seeds(runs: int, base: int = SEED_BASE) -> list[int]:
+    """The base seeds of ``runs`` independent runs (:data:`RUN_SEED_STRIDE` apart)."""
+    return [base + RUN_SEED_STRIDE * (k + 1) for k in range(runs)]
 
 
 @dataclasses.dataclass

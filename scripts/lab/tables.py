@@ -16,6 +16,11 @@ def fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
+def pm(v: float | None, half: float | None) -> str:
+    """A mean and its interval's half-width in a cell: ``v ± half`` (just ``v`` without an interval)."""
+    return fmt(v) if half is None else f"{fmt(v)} ± {fmt(half, 2)}"
+
+
 def write_result(out: Path, name: str, data: Any, table: str, meta: dict[str, Any]) -> None:
     """``out/summary.json`` (``{"meta": meta, name: data}``) and ``out/<name>.md`` (the Markdown ``table``)."""
     out.mkdir(parents=True, exist_ok=True)
