@@ -136,19 +136,36 @@ def test_zero_cache_is_a_truncated_path_tracer(backend):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("backend", ["eager", "step"])
-def test_zero_indirect_cache_is_a_path_tracer_to_the_terminal_vertex(backend):
+@pytest.mark.parametrize("backend,terminal_nee", [("eager", "mis"), ("step", "mis"), ("step", "light")])
+def test_zero_indirect_cache_is_a_path_tracer_to_the_terminal_vertex(backend, terminal_nee):
     """``cache_target=indirect``: terminating at vertex m into a zero cache keeps vertex m's direct light (next-event
-    estimation by light sampling alone, sun and sky), so the image is the path tracer's with max_scatter = m,
-    one vertex more than the ``full`` target's (the scene on which the two differ)."""
+    estimation, sun and sky; the sky's direction by the sky or the phase function under ``terminal_nee=mis``, by
+    the sky alone under ``light``), so the image is the path tracer's with max_scatter = m, one vertex more than
+    the ``full`` target's (the scene on which the two differ)."""
     pt = render_images([*ZERO, "scene.integrator.max_scatter=2"], SEEDS, "pt", backend=backend)
-    nrc = render_images([*ZERO, "renderer.termination.min_vertices=2", "renderer.cache_target=indirect"], SEEDS,
+    nrc = render_images([*ZERO, "renderer.termination.min_vertices=2", "renderer.cache_target=indirect",
+                         f"renderer.terminal_nee={terminal_nee}"], SEEDS,
                         "nrc", lambda scene: lambda x, d: torch.zeros_like(x), backend=backend)
     assert_images_agree(nrc, pt)
     full = render_images([*ZERO, *FULL, "renderer.termination.min_vertices=2"], SEEDS, "nrc",
                          lambda scene: lambda x, d: torch.zeros_like(x), backend=backend)
     with pytest.raises(AssertionError):
         assert_images_agree(full, pt)
+
+
+def test_terminal_sky_samples_by_phase_remove_the_forward_peak_fireflies():
+    """g 0.85, a zero cache at the first vertex: the image is that vertex's next-event estimate. Drawing a uniform-sky
+    sample's direction by the sky or the phase function (``terminal_nee=mis``, one-sample MIS) instead of by the sky
+    alone (``light``: a direction near the phase peak weighs ~80x) leaves the image's expectation and cuts its
+    per-pixel variance over the seeds (measured 2.4x) and its brightest pixel."""
+    scene = [*ZERO, "scene.volume.g=0.85", "renderer.termination.min_vertices=1", "renderer.cache_target=indirect"]
+    zero = lambda scene: lambda x, d: torch.zeros_like(x)  # noqa: E731
+    mis = render_images([*scene, "renderer.terminal_nee=mis"], SEEDS, "nrc", zero, backend="step")
+    light = render_images([*scene, "renderer.terminal_nee=light"], SEEDS, "nrc", zero, backend="step")
+    assert_images_agree(mis, light)
+    var_mis, var_light = np.stack(mis).var(0).mean(), np.stack(light).var(0).mean()
+    assert var_light > 1.5 * var_mis, (var_light, var_mis)
+    assert np.stack(light).max() > np.stack(mis).max()
 
 
 THREE_LIGHTS = ["scene.lights=[{type:directional,direction:[-0.6,-0.55,-0.35],irradiance:[2.6,2.5,2.3]},"
@@ -527,9 +544,10 @@ TRAIN = ["scene.volume.procedural.resolution=32", "scene.camera.width=32", "scen
 
 @pytest.mark.slow
 def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
-    """20 frames of online training lower the loss; resuming from the frame-10 checkpoint replays frames
-    10..19 exactly (every frame has its own seed; weights, Adam, EMA, ring buffer and the training paths in flight
-    with their partial sums are restored)."""
+    """20 frames of online training lower the loss (frames 10..19 against a cache that does not learn, on the same
+    records: every training path is unbiased, so no target reads the cache); resuming from the frame-10 checkpoint
+    replays frames 10..19 exactly (every frame has its own seed; weights, Adam, EMA, ring buffer and the training
+    paths in flight with their partial sums are restored)."""
     import shutil
 
     # paths in flight at the checkpoint, carried into the next frames
@@ -550,8 +568,12 @@ def test_online_training_lowers_the_loss_and_resumes_exactly(tmp_path):
     assert result.metrics["history"]["training_paths_in_flight"][9] > 0  # the checkpoint carries paths in flight
     loss = np.array(result.metrics["loss_per_frame"])
     assert len(loss) == 20 and np.isfinite(loss).all()
-    # Frame 0 trains an untrained cache; later losses sit at the floor set by the noisy one-path targets.
-    assert np.median(loss[-5:]) < 0.6 * loss[0], loss
+    # The per-frame loss of one-path targets is noisy (10-130 here); a cache whose learning rates are ~0 has ~8x
+    # the trained one's over the same frames (measured: medians 192 against 23).
+    frozen_cfg = compose(["renderer=nrc", *TRAIN, *long_paths, "frames=20", "renderer.log.tensorboard=false",
+                          "cache.optimizer.lr=1e-12", "encoding.position.lr=1e-12"])
+    frozen = np.array(make_renderer("nrc", scene, frozen_cfg).render().metrics["loss_per_frame"])
+    assert np.median(loss[10:]) < 0.5 * np.median(frozen[10:]), (loss, frozen)
     assert np.isfinite(result.image).all() and result.image.mean() > 0
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
 

@@ -5,7 +5,8 @@ Render paths (``spp`` per pixel) and training paths (one per training pixel) are
 of the step is its vertex (:mod:`nrc.render.radiance_caching.vertex`): the termination rule
 (:mod:`nrc.render.radiance_caching.termination`), the training records and the cache query. A terminating path
 adds ``beta x cache(x_m, d_m)`` (``beta`` its throughput before ``x_m``'s albedo, ``d_m`` the direction arriving
-at ``x_m``); with ``cache_target=indirect`` also its own next-event estimate by light sampling alone. Training paths
+at ``x_m``); with ``cache_target=indirect`` also its own next-event estimate (``terminal_nee``: light sampling, the
+uniform sky's direction by the sky or the phase function). Training paths
 go on ``extra_vertices`` past that vertex (a fraction ``unbiased_fraction`` never terminates), and vertex ``j`` of
 one becomes a record ``(x_j, d_j) -> T_j`` with ``T_j = acc_j + albedo x T_{j+1}``. With ``renderer.reuse`` the
 render paths' reuse vertex is recorded for the reuse pass (:mod:`nrc.render.reuse`); with ``renderer.debias`` a

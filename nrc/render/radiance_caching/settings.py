@@ -66,6 +66,7 @@ class NRCSettings:
     free_flight: str
     termination: Termination
     cache_target: str  # full | indirect (nrc.render.radiance_caching.paths)
+    terminal_nee: str  # mis | light: a terminating vertex's estimate of the sky (nrc.render.radiance_caching.vertex)
     light_sampling: LightSamplingSettings  # light_selection, ris.candidates, point_light_sampling
     reuse: ReuseSettings  # reservoir reuse at the render paths' first vertex (nrc.render.reuse)
     debias: DebiasSettings  # the cache as a control variate (nrc.render.radiance_caching.debias)
@@ -105,6 +106,7 @@ class NRCSettings:
             free_flight=cfg.get_choice("free_flight", ["brick", "global"]),
             termination=Termination.from_config(cfg.block("termination")),
             cache_target=cfg.get_choice("cache_target", CACHE_TARGETS),
+            terminal_nee=cfg.get_choice("terminal_nee", ["mis", "light"]),
             light_sampling=LightSamplingSettings.from_config(cfg),
             reuse=ReuseSettings.from_config(cfg),
             debias=DebiasSettings.from_config(cfg),

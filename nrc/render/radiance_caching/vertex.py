@@ -4,8 +4,10 @@ The program (:class:`NRCVertex`, part of the compiled step) applies the terminat
 (:mod:`~nrc.render.radiance_caching.termination`), decides which training records a vertex writes, and, with
 ``renderer.debias``, lets a render path that would terminate go on with probability ``q`` as a path-traced suffix
 (throughput ``/ q``, never terminating again: ``never = CONTINUED``). With ``cache_target=indirect`` a
-terminating vertex still makes its next-event estimate, by light sampling alone (no MIS: the path does not go on
-to find the environment by phase sampling).
+terminating vertex still makes its next-event estimate: by light sampling, except that a sample of the uniform sky
+draws its direction by the sky or by the phase function, 1/2 each (``renderer.terminal_nee=mis``: one-sample MIS, the
+balance heuristic; the path does not go on to find the sky by phase sampling, and the sky's own uniform directions
+weighted by a forward-peaked phase function are fireflies), or by light sampling alone (``terminal_nee=light``).
 
 The collector (:class:`NRCCollector`) maps each slot's contributions to the accumulator rows of
 :mod:`~nrc.render.radiance_caching.paths` (pixel, training records, the records' direct light, the debias
@@ -78,7 +80,9 @@ class NRCVertex(VertexProgram):
         # accumulator rows of a slot's L: 0 (the pixel, a training path's discard row, or with debias a continued
         # path's suffix row 1), the V records, and with cache_target=indirect the V records' own direct light
         self.rows = 1 + self.V + (self.V if self.cache_target == "indirect" else 0)
-        self.lanes = 1 + self.debias  # the termination draw, the debias draw
+        # renderer.terminal_nee=mis: a terminating vertex's sky sample by the sky or the phase function (Decision)
+        self.terminal_mis = self.cache_target == "indirect" and st.terminal_nee == "mis"
+        self.lanes = 1 + self.debias + self.terminal_mis  # the termination draw, the debias draw, the sky's strategy
         self.param_names = ("min_vertices", "p_continue", "spread_c", "unbiased_cap") + (
             ("debias_q",) if self.debias else ())
         # a continued path under cache_target=indirect keeps the terminal vertex's estimate (light sampling alone)
@@ -97,7 +101,8 @@ class NRCVertex(VertexProgram):
 
     @property
     def structure(self) -> tuple[Any, ...]:
-        return ("nrc", self.rule, self.V, self.cache_target, self.debias, *(h.structure for h in self.hooks))
+        return ("nrc", self.rule, self.V, self.cache_target, self.debias, self.terminal_mis,
+                *(h.structure for h in self.hooks))
 
     def param_values(self, debias_q: float = 0.0, **frame: Any) -> list[float]:
         t = self.termination
@@ -164,8 +169,11 @@ class NRCVertex(VertexProgram):
                 shadow_row = torch.where(cont, torch.zeros_like(shadow_row), shadow_row)
         # a continued path's first segment under cache_target=indirect does not count the environment: its
         # vertex's direct light came from light sampling alone
+        # renderer.terminal_nee=mis: half the terminating vertices that sample the sky draw its direction by phase
+        env_by_phase = ~go & (u[1 + self.debias] < 0.5) if self.terminal_mis else None
         return Decision(go=go, nee=nee, mis=mis, nee_beta=nee_beta, beta=beta,
-                        skip_env=cont if self.indirect_debias else None, shadow_row=shadow_row)
+                        skip_env=cont if self.indirect_debias else None, shadow_row=shadow_row,
+                        env_by_phase=env_by_phase)
 
 
 @dataclass

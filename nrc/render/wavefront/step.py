@@ -111,6 +111,9 @@ class Transport:
         self.program = program
         self.lights = table = lights.table
         self.sampler = None if table.supported else lights
+        # Decision.env_by_phase applies where the sky is the uniform one and a sample is a plain light sample (not
+        # a resampled one): l_pdf is then P(select) / (4 pi) (lat-long maps and RIS keep light sampling alone)
+        self.terminal_mis = table.supported and table.has_uniform_env and table.candidates == 1
         self.layout, self.n_tables = Layout.of(program), n_tables
         self.inline_shadow, self.roulette, self.rr = options.inline_shadow, options.roulette, options.russian_roulette
         self.uniforms = uniforms
@@ -269,6 +272,7 @@ class Transport:
         lights = self.lights
         sh = torch.zeros_like(s.shadow)
         wi, tse, csh = s.wi, s.tse, s.csh
+        d_s, pdf_s = hg_sample_v3(g, d, u[2], u[3])  # the continuation's direction (a terminal sky sample's too)
         if lights.n_lights:
             def phase_of(w: tuple) -> Tensor:
                 return hg_pdf(g, d[0] * w[0] + d[1] * w[1] + d[2] * w[2])
@@ -285,10 +289,20 @@ class Transport:
                 m = lights.candidates
                 cands = [draw(ul[4 * j:4 * j + 4]) for j in range(m)]
                 wi, l_dist, l_w, l_pdf, l_env = cands[0] if m == 1 else resample(cands, phase_of, ul[4 * m])[0]
+            by_phase = None
+            if dec.env_by_phase is not None and self.terminal_mis:
+                # a terminal vertex's uniform-sky sample: its direction by the sky or (here) by the phase function
+                sky = l_env & ~dec.mis & ~go
+                by_phase = sky & dec.env_by_phase
+                wi = where3(by_phase, d_s, wi)
             tse = torch.minimum(box_exit(lo, hi, x, wi), l_dist)
             phase = phase_of(wi)
             # MIS against phase sampling where the path goes on to find the environment
             w = phase * torch.where(l_env & dec.mis, power_heuristic(l_pdf, phase), torch.ones_like(phase))
+            if by_phase is not None:
+                # one-sample MIS, balance heuristic, 1/2 each: L f / (P_sel (p_sky / 2 + f / 2)), and l_w = L / (P_sel
+                # p_sky) with the uniform sky's p_sky = 1 / (4 pi): the phase factor becomes f / (1/2 + 2 pi f)
+                w = torch.where(sky, phase / (0.5 + 2.0 * math.pi * phase), w)
             csh = tuple(b * lw * w for b, lw in zip(dec.nee_beta, l_w))
             sh = torch.where(nee, torch.full_like(sh, 1 if self.inline_shadow else 2), sh)
             s.n_shadow = s.n_shadow + (sh == 1).long()
@@ -302,7 +316,6 @@ class Transport:
             in_rr = n_s.to(torch.float32) >= p[self.ix["rr_start"]]
             stop = stop | (in_rr & (u[self.lane_rr] >= q))
             beta_s = tuple(torch.where(in_rr, b / q, b) for b in beta_s)
-        d_s, pdf_s = hg_sample_v3(g, d, u[2], u[3])
         t_far = box_exit(lo, hi, x, d_s)
 
         s.d = where3(go, d_s, d)
