@@ -372,15 +372,20 @@ def readme_results(docs: Path) -> list[str]:
                      "measured: " + ", ".join(at(p) for p in warm_wins))
         else:
             text += f"; with a warm cache ({n_warm} frames) it still loses: " + ", ".join(at(p) for p in warm)
+    raw = [p["ratio_raw"] for p in cold if p.get("ratio_raw") is not None]
+    if raw:  # without a denoiser: the raw NRC frame against the raw path-traced one at equal time
+        text += (f"; without a denoiser the raw NRC frame's relMSE is {min(raw):.2g}–{max(raw):.2g}x the raw path "
+                 f"tracer's at equal time after {n_cold} frames")
     warm_of = {p["point"]: p for p in warm}
     rows = [f"| point | optical depth | albedo | NRC+OIDN / PT+OIDN, {n_cold} frames | "
-            f"NRC+OIDN / PT+OIDN, {n_warm or 'more'} frames (warm) | NRC+OIDN image mean / reference's, "
-            f"{n_cold} frames |",
-            "|---|---:|---:|---:|---:|---:|"]
+            f"NRC+OIDN / PT+OIDN, {n_warm or 'more'} frames (warm) | NRC / PT raw, {n_cold} frames | "
+            f"NRC+OIDN image mean / reference's, {n_cold} frames |",
+            "|---|---:|---:|---:|---:|---:|---:|"]
     for p in sorted(cold, key=lambda p: (p["albedo"], p["tau_median"])):
         w = warm_of.get(p["point"])
         rows.append(f"| {p['point']} | {p['tau_median']:.0f} | {p['albedo']:g} | {p['ratio_oidn']:.2g} | "
-                    f"{fmt(w and w['ratio_oidn'], 2)} | {fmt(p.get('nrc+oidn_mean_ratio_medium'), 3)} |")
+                    f"{fmt(w and w['ratio_oidn'], 2)} | {fmt(p.get('ratio_raw'), 2)} | "
+                    f"{fmt(p.get('nrc+oidn_mean_ratio_medium'), 3)} |")
     figure = f"[![Where NRC pays off: the crossover map](docs/results/{CROSSOVER}/map.png)](docs/results.md)"
     return [*_wrap(text + " (below 1: NRC wins)."), "", *rows, "", figure]
 
