@@ -169,8 +169,8 @@ class NRCVertex(VertexProgram):
                 shadow_row = torch.where(cont, torch.zeros_like(shadow_row), shadow_row)
         # a continued path's first segment under cache_target=indirect does not count the environment: its
         # vertex's direct light came from light sampling alone
-        # renderer.terminal_nee=mis: half the terminating vertices that sample the sky draw its direction by phase
-        env_by_phase = ~go & (u[1 + self.debias] < 0.5) if self.terminal_mis else None
+        # renderer.terminal_nee=mis: the sky's strategy, 1/2 each (the step applies it to terminal sky samples)
+        env_by_phase = u[1 + self.debias] < 0.5 if self.terminal_mis else None
         return Decision(go=go, nee=nee, mis=mis, nee_beta=nee_beta, beta=beta,
                         skip_env=cont if self.indirect_debias else None, shadow_row=shadow_row,
                         env_by_phase=env_by_phase)

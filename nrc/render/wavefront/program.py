@@ -53,10 +53,10 @@ class Decision:
     ``None``: every escape counts it. Kept in the state field ``skip_env``, which exists where the program
     declares :attr:`VertexProgram.skips_env`."""
     env_by_phase: Tensor | None = None
-    """``(S,)`` bool: where the estimate is by light sampling alone (``mis`` False) at a vertex the path ends at
-    (``go`` False) and its light sample is the uniform sky's, the sky's direction is drawn by phase sampling instead
-    (the caller draws one of the two with probability 1/2: a one-sample MIS of sky and phase sampling, balance
-    heuristic); ``None``: light sampling alone."""
+    """``(S,)`` bool, true with probability 1/2: the step applies it where the estimate is not MIS-weighted (``mis``
+    False) at a vertex the path ends at (``go`` False) and the light sample is the uniform sky's, whose direction
+    is then drawn by phase sampling instead of by the sky (a one-sample MIS of the two, balance heuristic);
+    ``None``: light sampling alone."""
     shadow_row: Tensor | None = None
     """``(S,)`` the slot's ``L`` row that the next-event estimate's shadow ray adds to when it ends (programs with
     several rows; kept in the state field ``srow``); ``None``: the program's :meth:`VertexProgram.row` of the slot
