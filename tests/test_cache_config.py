@@ -123,6 +123,8 @@ ONEBLOB = {"otype": "OneBlob", "n_bins": 4}
          "cache.network.n_hidden_layers must be >= 1"),
         ({**CACHE, "loss": {"target_clamp": 0.0}}, {"position": HASH, "direction": ONEBLOB}, {},
          "cache.loss.target_clamp must be > 0"),
+        ({**CACHE, "loss": {"target_clamp": 1.0, "scale_floor": -0.5}}, {"position": HASH, "direction": ONEBLOB}, {},
+         "cache.loss.scale_floor must be >= 0"),
         ({**CACHE, "optimizer": {"lr": 1e-2}}, {"position": HASH, "direction": ONEBLOB}, {},
          "cache.optimizer.eps is required"),
         ({**CACHE, "query_chunk": 0}, {"position": HASH, "direction": ONEBLOB}, {}, "cache.query_chunk must be >= 1"),

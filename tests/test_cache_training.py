@@ -64,6 +64,21 @@ def test_loss_gradient_treats_denominator_as_constant():
     torch.testing.assert_close(p.grad, expected)
 
 
+def test_loss_scale_floor_adds_the_batch_mean_target_luminance_to_the_denominator():
+    p = torch.tensor([[1.0, 2.0, 0.5], [0.0, 0.0, 0.0]])
+    t = torch.tensor([[0.5, 2.5, 1.0], [1.0, 0.0, 2.0]])
+    y0 = 0.299 * 1.0 + 0.587 * 2.0 + 0.114 * 0.5
+    mean_t = ((0.299 * 0.5 + 0.587 * 2.5 + 0.114 * 1.0) + (0.299 * 1.0 + 0.114 * 2.0)) / 2
+    floor = (0.5 * mean_t) ** 2
+    expected = (0.75 / (y0**2 + 0.01 + floor) + 5.0 / (0.01 + floor)) / 2
+    assert relative_l2_luminance(p, t, 10.0, scale_floor=0.5).item() == pytest.approx(expected, rel=1e-6)
+    assert relative_l2_luminance(p, t, 10.0, scale_floor=0.0).item() == relative_l2_luminance(p, t, 10.0).item()
+    # an untrained cache (predictions 0): with a large floor every sample weighs alike, as in a plain L2
+    zero = torch.zeros(2, 3, requires_grad=True)
+    relative_l2_luminance(zero, t * 1e3, 1e6, scale_floor=100.0).backward()
+    torch.testing.assert_close(zero.grad / zero.grad.abs().max(), -t / t.abs().max(), rtol=1e-4, atol=1e-6)
+
+
 def test_loss_clamps_targets_and_handles_empty_batch():
     p = torch.tensor([[1.0, 1.0, 1.0]])
     huge = relative_l2_luminance(p, torch.tensor([[1e30, float("inf"), 5.0]]), target_clamp=8.0)

@@ -8,7 +8,9 @@ Keys (all validated; unknown keys are errors):
   (L2 on MLP weights only). Hash-grid tables take ``lr``/``eps`` from their encoding block.
 * ``ema``: ``alpha`` in ``[0, 1)`` (0.99; 0 disables averaging); ``window_fraction`` in ``(0, 1]``: the average
   spans at most about this fraction of the steps so far (1: the plain debiased EMA; :mod:`nrc.cache.ema`).
-* ``loss``: ``target_clamp`` (> 0, radiance units): targets are clamped to ``[-c, c]``.
+* ``loss``: ``target_clamp`` (> 0, radiance units): targets are clamped to ``[-c, c]``; ``scale_floor`` (>= 0):
+  the relative loss's denominator gains ``(f x the batch's mean target luminance)^2`` (0: Müller et al.'s
+  ``Y(p)^2 + 0.01``; :func:`nrc.cache.loss.relative_l2_luminance`).
 * ``query_chunk``: points per forward pass in :meth:`RadianceCache.query` (bounds memory).
 * ``compile_training``: ``torch.compile`` the training step's forward, loss and backward (dynamic batch size;
   the fused Adam step is already one kernel). Off by default: on the CPU it measured no faster than eager
@@ -36,6 +38,7 @@ class CacheSettings:
     ema_window_fraction: float
     target_clamp: float
     query_chunk: int
+    loss_scale_floor: float = 0.0
     compile_training: bool = False
 
     @classmethod
@@ -58,6 +61,7 @@ class CacheSettings:
             ema_alpha=ema.get_float("alpha", lo=0.0, hi=1.0, hi_open=True),
             ema_window_fraction=ema.get_float("window_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0),
             target_clamp=loss.get_float("target_clamp", lo=0.0, lo_open=True),
+            loss_scale_floor=loss.get_float("scale_floor", 0.0, lo=0.0),
             query_chunk=cfg.get_int("query_chunk", 1 << 16, lo=1),
             compile_training=cfg.get_bool("compile_training", False),
         )
