@@ -79,6 +79,30 @@ def test_loss_scale_floor_adds_the_batch_mean_target_luminance_to_the_denominato
     torch.testing.assert_close(zero.grad / zero.grad.abs().max(), -t / t.abs().max(), rtol=1e-4, atol=1e-6)
 
 
+def test_loss_relative_clamp_scales_targets_above_k_times_the_prediction_or_the_batch_mean():
+    p = torch.zeros(4, 3)
+    t = torch.tensor([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0], [9.0, 18.0, 9.0]])  # luminances 1, 1, 1, 14.4
+    mean = (3.0 + 0.299 * 9 + 0.587 * 18 + 0.114 * 9) / 4  # 4.35
+    cap = 2.0 * mean
+    clamped = t.clone()
+    clamped[3] *= cap / (0.299 * 9 + 0.587 * 18 + 0.114 * 9)  # scaled down, its colour kept
+    want = relative_l2_luminance(p, clamped, 100.0)
+    assert relative_l2_luminance(p, t, 100.0, relative_clamp=2.0).item() == pytest.approx(want.item(), rel=1e-6)
+    # where the cache predicts more than the batch's mean, the cap is k times its own prediction
+    bright = torch.zeros(4, 3)
+    bright[3] = 5.0  # luminance 5 > the mean 4.35: cap 2 x 5 = 10
+    capped = t.clone()
+    capped[3] *= 10.0 / (0.299 * 9 + 0.587 * 18 + 0.114 * 9)
+    assert relative_l2_luminance(bright, t, 100.0, relative_clamp=2.0).item() == pytest.approx(
+        relative_l2_luminance(bright, capped, 100.0).item(), rel=1e-6)
+    # clamp_to=mean: k times the batch's mean for every target, whatever the prediction
+    assert relative_l2_luminance(bright, t, 100.0, relative_clamp=2.0, clamp_to="mean").item() == pytest.approx(
+        relative_l2_luminance(bright, clamped, 100.0).item(), rel=1e-6)
+    # below the cap nothing changes; 0 turns it off
+    assert relative_l2_luminance(p, t, 100.0, relative_clamp=4.0).item() == relative_l2_luminance(p, t, 100.0).item()
+    assert relative_l2_luminance(p, t, 100.0, relative_clamp=0.0).item() == relative_l2_luminance(p, t, 100.0).item()
+
+
 def test_loss_clamps_targets_and_handles_empty_batch():
     p = torch.tensor([[1.0, 1.0, 1.0]])
     huge = relative_l2_luminance(p, torch.tensor([[1e30, float("inf"), 5.0]]), target_clamp=8.0)

@@ -237,7 +237,8 @@ def hand_config(tmp_path, *extra: str, g: float | None = G) -> list[str]:
             "scene.camera.look_at=[0,0,0]", "scene.integrator.spp=1", "renderer.free_flight=global",
             "renderer.training.width=1", "renderer.training.height=1", "renderer.training.records_per_path=3",
             "transmittance=biased_raymarch", "batch_filter.n_batches=1", "renderer.log.tensorboard=false",
-            "renderer.training.carry_frames=0", *extra]
+            "renderer.training.carry_frames=0", "renderer.training.unbiased_fraction=0", *extra]
+    # (the hand path is a self-training path: unbiased_fraction's auto would make every training path unbiased)
 
 
 def hand_vertices(scene, n: int):
@@ -820,39 +821,73 @@ def test_the_thick_regime_starts_at_optical_depth_25():
 
 
 def test_auto_unbiased_fraction_follows_the_optical_depth():
-    """training.unbiased_fraction=auto: half the training paths run to the end in a thick cloud (median optical
-    depth over the camera rays >= THICK_OPTICAL_DEPTH, 25) under a static camera and light, a quarter in a moderate one or animated;
+    """training.unbiased_fraction=auto: every training path runs to the end under a static camera and light, thin
+    or thick, a quarter of them under a moving light (animate);
     carry_frames=auto: 4 in the thick cloud of albedo >= 0.99, 0 else; a fixed number stays as given; other words
     are config errors naming the key."""
     from nrc.render.radiance_caching.settings import NRCSettings, auto_unbiased_fraction
     from nrc.volume.optical_depth import scene_optical_depth
 
-    for density, want in ((0.5, 0.25), (4.0, 0.5)):
+    for density in (0.5, 4.0):
         scene = load_scene(compose([*SMALL, f"scene.volume.density_scale={density}"]).scene)
         fraction, tau = auto_unbiased_fraction(scene)
-        assert fraction == want
+        assert fraction == 1.0
         assert tau == pytest.approx(scene_optical_depth(scene).median, rel=0.25)  # on a smaller camera
         assert auto_unbiased_fraction(scene, "sun")[0] == 0.25  # a moving light: the quarter (docs/measurements/nrc_defaults.md)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",
                    "renderer.training.carry_frames=auto", "scene.volume.density_scale=4"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None
     r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
-    assert r.settings.training.unbiased_fraction == 0.5 and r.optical_depth >= THICK_OPTICAL_DEPTH
+    assert r.settings.training.unbiased_fraction == 1.0 and r.optical_depth >= THICK_OPTICAL_DEPTH
     assert r.settings.training.carry_frames == 4 and r.tracer.carry_frames == 4  # carry_frames=auto: thick
     grey = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",  # only where
                     "renderer.training.carry_frames=auto", "scene.volume.density_scale=4", "scene.volume.albedo=0.95"])
     r = make_renderer("nrc", load_scene(grey.scene), grey, cache=StubCache(lambda x, d: torch.zeros_like(x)))
-    assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 0.5
+    assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 1.0
     thin = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=0.5",
                     "renderer.training.carry_frames=auto"])
     r = make_renderer("nrc", load_scene(thin.scene), thin, cache=StubCache(lambda x, d: torch.zeros_like(x)))
-    assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 0.25
+    assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 1.0
+    sun = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=4", "renderer.animate.mode=sun"])
+    r = make_renderer("nrc", load_scene(sun.scene), sun, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    assert r.settings.training.unbiased_fraction == 0.25 and r.settings.training.carry_frames == 0
     with pytest.raises(ConfigError, match="renderer.training.carry_frames"):
         NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.carry_frames=-1"]).renderer)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=0.1"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction == 0.1
     with pytest.raises(ConfigError, match="renderer.training.unbiased_fraction"):
         NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.unbiased_fraction=most"]).renderer)
+
+
+def test_unbiased_warmup_frames_ramp_the_unbiased_fraction_from_one(monkeypatch):
+    """training.unbiased_warmup_frames=W: frame 0's training paths are all unbiased, the fraction falls linearly to
+    unbiased_fraction at frame W and stays there; 0 (the default) keeps unbiased_fraction from frame 0; a negative
+    count is a config error naming the key."""
+    import nrc.render.radiance_caching.renderer as nrc_renderer
+    from nrc.render.radiance_caching.settings import NRCSettings
+
+    tr = NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.unbiased_fraction=0.25",
+                                          "renderer.training.unbiased_warmup_frames=4"]).renderer).training
+    assert [tr.unbiased_fraction_at(f) for f in (0, 1, 2, 4, 9)] == [1.0, 0.8125, 0.625, 0.25, 0.25]
+    plain = NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.unbiased_fraction=0.25"]).renderer)
+    assert plain.training.unbiased_warmup_frames == 0 and plain.training.unbiased_fraction_at(0) == 0.25
+    with pytest.raises(ConfigError, match="renderer.training.unbiased_warmup_frames"):
+        NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.unbiased_warmup_frames=-1"]).renderer)
+
+    seen = []  # the fraction of each frame's training paths marked unbiased, as the renderer drew them
+    real = nrc_renderer.PathSet
+
+    def spy(camera, spp, train_xy, unbiased, frame):
+        seen.append(unbiased.float().mean().item())
+        return real(camera, spp, train_xy, unbiased, frame)
+
+    monkeypatch.setattr(nrc_renderer, "PathSet", spy)
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=0",
+                   "renderer.training.unbiased_warmup_frames=2", "frames=3"])
+    r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    for frame in range(3):
+        r.render_frame(frame)
+    assert seen[0] == 1.0 and 0.3 < seen[1] < 0.7 and seen[2] == 0.0
 
 
 def test_the_renderer_takes_its_settings_read_once_with_the_auto_rules_resolved():
@@ -875,7 +910,7 @@ def test_the_renderer_takes_its_settings_read_once_with_the_auto_rules_resolved(
     scene = load_scene(cfg.scene)
     settings = renderer_settings("nrc", cfg, scene)
     tr = settings.nrc.training
-    assert settings.resolved and tr.width * tr.height >= 16 and tr.unbiased_fraction in (0.25, 0.5)
+    assert settings.resolved and tr.width * tr.height >= 16 and tr.unbiased_fraction == 1.0
     assert tr.carry_frames is not None and settings.regime in ("thick", "moderate") and settings.optical_depth > 0
 
     def values(x):

@@ -128,7 +128,8 @@ class RadianceCache:
     def _loss(self, raw: Tensor, targets: Tensor, net: Any = None) -> Tensor:
         """The loss of one training batch through ``net`` (default: the network)."""
         return relative_l2_luminance((self.network if net is None else net)(raw), targets, self.settings.target_clamp,
-                                     self.settings.loss_scale_floor)
+                                     self.settings.loss_scale_floor, self.settings.loss_relative_clamp,
+                                     self.settings.loss_clamp_to)
 
     def _training_loss(self, raw: Tensor, targets: Tensor) -> Tensor:
         """The loss of one training batch, through ``torch.compile`` when asked (its backward is compiled with it:

@@ -10,7 +10,9 @@ Keys (all validated; unknown keys are errors):
   spans at most about this fraction of the steps so far (1: the plain debiased EMA; :mod:`nrc.cache.ema`).
 * ``loss``: ``target_clamp`` (> 0, radiance units): targets are clamped to ``[-c, c]``; ``scale_floor`` (>= 0):
   the relative loss's denominator gains ``(f x the batch's mean target luminance)^2`` (0: Müller et al.'s
-  ``Y(p)^2 + 0.01``; :func:`nrc.cache.loss.relative_l2_luminance`).
+  ``Y(p)^2 + 0.01``; :func:`nrc.cache.loss.relative_l2_luminance`); ``relative_clamp`` (>= 0, 0: off): a target
+  of luminance above ``k x`` the larger of the cache's prediction and the batch's mean is scaled down to it
+  (``clamp_to: prediction``; ``mean``: k x the batch's mean alone).
 * ``query_chunk``: points per forward pass in :meth:`RadianceCache.query` (bounds memory).
 * ``compile_training``: ``torch.compile`` the training step's forward, loss and backward (dynamic batch size;
   the fused Adam step is already one kernel). Off by default: on the CPU it measured no faster than eager
@@ -39,6 +41,8 @@ class CacheSettings:
     target_clamp: float
     query_chunk: int
     loss_scale_floor: float = 0.0
+    loss_relative_clamp: float = 0.0
+    loss_clamp_to: str = "prediction"
     compile_training: bool = False
 
     @classmethod
@@ -62,6 +66,8 @@ class CacheSettings:
             ema_window_fraction=ema.get_float("window_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0),
             target_clamp=loss.get_float("target_clamp", lo=0.0, lo_open=True),
             loss_scale_floor=loss.get_float("scale_floor", 0.0, lo=0.0),
+            loss_relative_clamp=loss.get_float("relative_clamp", 0.0, lo=0.0),
+            loss_clamp_to=loss.get_choice("clamp_to", ["prediction", "mean"], "prediction"),
             query_chunk=cfg.get_int("query_chunk", 1 << 16, lo=1),
             compile_training=cfg.get_bool("compile_training", False),
         )

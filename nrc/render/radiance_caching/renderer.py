@@ -153,7 +153,7 @@ class NRCRenderer:
         t0 = time.perf_counter()
         offset = rng.rand(1, 2)[0]
         train_xy = training_positions(self.train_order, tr.width, tr.height, camera.width, camera.height, offset)
-        unbiased = rng.rand(tr.n_paths, 1)[:, 0] < tr.unbiased_fraction
+        unbiased = rng.rand(tr.n_paths, 1)[:, 0] < tr.unbiased_fraction_at(frame)
         ps = PathSet(camera, scene.integrator.spp, train_xy, unbiased, frame)
         lights = self.frame_lights(frame)
         q = st.debias.probability
@@ -460,7 +460,8 @@ class NRCRenderer:
             "shadow_rays": int(sum(h.get("shadow_rays", []))),
             "equiangular_segments": int(sum(h.get("equiangular_segments", []))),
             "training_image": [st.training.width, st.training.height], "training_auto": st.training.auto,
-            "unbiased_fraction": st.training.unbiased_fraction, "carry_frames": st.training.carry_frames,
+            "unbiased_fraction": st.training.unbiased_fraction,
+            "unbiased_warmup_frames": st.training.unbiased_warmup_frames, "carry_frames": st.training.carry_frames,
             "training_overlap": st.training.overlap,  # the setting; frames whose steps ran beside the next trace:
             "train_beside_trace": int(sum(h.get("train_beside_trace", []))),
             "optical_depth_median": self.optical_depth,

@@ -40,6 +40,18 @@ class TrainingSettings:
     paths_per_pixel: float = 1.0  # auto: training paths per pixel that sees the medium
     min_paths: int = 4096  # auto: the floor
     max_paths: int = 40960  # auto: the cap
+    unbiased_warmup_frames: int = 0  # frames over which the unbiased fraction falls from 1 to unbiased_fraction
+
+    def unbiased_fraction_at(self, frame: int) -> float:
+        """The unbiased fraction of ``frame``'s training paths: 1 at frame 0, falling linearly to
+        ``unbiased_fraction`` at frame ``unbiased_warmup_frames`` and staying there (0 warm-up frames: always
+        ``unbiased_fraction``). An untrained cache's self-training targets pass its error on; an unbiased path's
+        target does not (docs/measurements/learning.md, "A loss for unbiased targets": measured, not adopted)."""
+        if self.unbiased_fraction is None:
+            raise ValueError("unbiased_fraction: auto is resolved by the renderer (settings.resolve_auto)")
+        if frame >= self.unbiased_warmup_frames:
+            return self.unbiased_fraction
+        return 1.0 - (1.0 - self.unbiased_fraction) * frame / self.unbiased_warmup_frames
 
     @property
     def auto(self) -> bool:
@@ -116,6 +128,7 @@ class NRCSettings:
                 extra_vertices=tr.get_int("extra_vertices", lo=0),
                 unbiased_fraction=_unbiased_fraction(tr),
                 unbiased_max_vertices=tr.get_int("unbiased_max_vertices", lo=0),
+                unbiased_warmup_frames=tr.get_int("unbiased_warmup_frames", 0, lo=0),
                 ring_buffer=_ring_buffer(tr),
                 carry_frames=_carry_frames(tr),
                 query_weights=tr.get_choice("query_weights", ["raw", "ema"]),
@@ -176,7 +189,8 @@ def _carry_frames(tr: ConfigReader) -> int | None:
 
 
 THICK_OPTICAL_DEPTH = 25.0  # auto: a scene whose median optical depth reaches this is thick (docs/nrc.md, "Learning speed")
-UNBIASED_FRACTION = {"moderate": 0.25, "thick": 0.5}  # auto's two values (docs/measurements/nrc_defaults.md)
+UNBIASED_FRACTION = {"static": 1.0, "animated": 0.25}  # auto's two values, by whether the camera or light moves
+# (docs/measurements/learning.md, "A loss for unbiased targets"; docs/measurements/nrc_defaults.md, "A whole animation")
 CARRY_FRAMES = {"moderate": 0, "thick": 4}  # auto's two values (docs/nrc.md, "Current defaults and why")
 CARRY_MIN_ALBEDO = 0.99  # auto carries only in a medium at least this white (cloud water; docs/measurements/nrc_frames.md)
 OPTICAL_DEPTH_PIXELS = 64 * 36  # auto: the optical depth is taken over a camera of about this many pixels
@@ -186,12 +200,10 @@ def auto_training_regime(scene: Any, animate: str = "none") -> tuple[str, float]
     """``(regime, median optical depth)``: ``thick`` where the scene's median optical depth over its camera rays
     (:func:`nrc.volume.optical_depth.scene_optical_depth`, on the same camera at about
     :data:`OPTICAL_DEPTH_PIXELS` pixels) reaches :data:`THICK_OPTICAL_DEPTH` and the camera and light are static
-    (``animate`` ``none``), else ``moderate``. The ``auto`` settings follow it: :data:`UNBIASED_FRACTION` (in a
-    thick cloud self-training passes most of a cached value on to the targets; more fully traced paths bring the
-    image mean up sooner there, and cost accuracy on moderate clouds and under a moving light, where the cache
-    overshoots: docs/measurements/nrc_defaults.md, "Unbiased training paths" and "A whole animation") and
-    :data:`CARRY_FRAMES` (a thick cloud's frame no longer waits for its long training paths; in a moderate one the
-    carried quarter of unbiased paths held the image darker: docs/nrc.md, "Current defaults and why")."""
+    (``animate`` ``none``), else ``moderate``. The ``auto`` settings follow it: :data:`CARRY_FRAMES` (a thick
+    cloud's frame no longer waits for its long training paths; in a moderate one the carried quarter of unbiased
+    paths held the image darker: docs/nrc.md, "Current defaults and why") and the hash table's size
+    (:mod:`nrc.cache.encodings.factory`)."""
     from nrc.volume.optical_depth import scene_optical_depth
 
     cam = scene.camera
@@ -211,9 +223,13 @@ def auto_carry_frames(regime: str, albedo: float) -> int:
 
 
 def auto_unbiased_fraction(scene: Any, animate: str = "none") -> tuple[float, float]:
-    """``(fraction, median optical depth)``: :data:`UNBIASED_FRACTION` of :func:`auto_training_regime`."""
-    regime, tau = auto_training_regime(scene, animate)
-    return UNBIASED_FRACTION[regime], tau
+    """``(fraction, median optical depth)``: :data:`UNBIASED_FRACTION` (every training path unbiased under a static
+    camera and light, thin or thick: with the loss's floor and clamp (``cache.loss``) unbiased targets learn faster
+    than self-training at optical depth 7 to 196, docs/measurements/learning.md, "A loss for unbiased targets"; a
+    quarter under a moving light, where the cache overshot, docs/measurements/nrc_defaults.md, "A whole animation"),
+    and the optical depth of :func:`auto_training_regime`."""
+    _, tau = auto_training_regime(scene, animate)
+    return UNBIASED_FRACTION["static" if animate == "none" else "animated"], tau
 
 
 RING_FRAMES = 4  # ring_buffer: auto keeps this many frames of records ...
@@ -353,7 +369,7 @@ def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettin
     if tr.unbiased_fraction is None or tr.carry_frames is None or hash_auto:
         regime, tau = auto_training_regime(scene, st.animate)
         if tr.unbiased_fraction is None:
-            tr = replace(tr, unbiased_fraction=UNBIASED_FRACTION[regime])
+            tr = replace(tr, unbiased_fraction=UNBIASED_FRACTION["static" if st.animate == "none" else "animated"])
         if tr.carry_frames is None:
             tr = replace(tr, carry_frames=auto_carry_frames(regime, scene.albedo))
     return replace(settings, nrc=replace(st, training=tr), resolved=True, optical_depth=tau,
