@@ -229,7 +229,12 @@ def auto_unbiased_fraction(scene: Any, animate: str = "none") -> tuple[float, fl
     quarter under a moving light, where the cache overshot, docs/measurements/nrc_defaults.md, "A whole animation"),
     and the optical depth of :func:`auto_training_regime`."""
     _, tau = auto_training_regime(scene, animate)
-    return UNBIASED_FRACTION["static" if animate == "none" else "animated"], tau
+    return _auto_unbiased_fraction(animate), tau
+
+
+def _auto_unbiased_fraction(animate: str) -> float:
+    """:data:`UNBIASED_FRACTION` for ``animate`` (``none``: static; else animated)."""
+    return UNBIASED_FRACTION["static" if animate == "none" else "animated"]
 
 
 RING_FRAMES = 4  # ring_buffer: auto keeps this many frames of records ...
@@ -369,7 +374,7 @@ def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettin
     if tr.unbiased_fraction is None or tr.carry_frames is None or hash_auto:
         regime, tau = auto_training_regime(scene, st.animate)
         if tr.unbiased_fraction is None:
-            tr = replace(tr, unbiased_fraction=UNBIASED_FRACTION["static" if st.animate == "none" else "animated"])
+            tr = replace(tr, unbiased_fraction=_auto_unbiased_fraction(st.animate))
         if tr.carry_frames is None:
             tr = replace(tr, carry_frames=auto_carry_frames(regime, scene.albedo))
     return replace(settings, nrc=replace(st, training=tr), resolved=True, optical_depth=tau,
