@@ -268,6 +268,51 @@ def test_non_finite_loss_or_gradient_skips_the_step():
     assert math.isfinite(cache.train_step(x, d, torch.ones(32, 3))) and cache.n_steps == 2
 
 
+def test_mlp_learning_rate_schedule_falls_towards_its_final_fraction_and_leaves_the_tables():
+    decay = {**CACHE, "optimizer": {**CACHE["optimizer"], "lr_final_fraction": 0.25, "lr_half_life": 2.0}}
+    grid = _grid()
+    cache = _cache(grid, cache=decay)
+    assert [cache.settings.mlp_lr_factor(k) for k in (0, 2, 4)] == [1.0, 0.625, 0.4375]
+    assert cache.settings.mlp_lr_factor(10_000) == pytest.approx(0.25)
+    mlp, table = cache.optimizer.param_groups
+    for k in range(5):
+        x, d = _batch(grid, 32, k)
+        cache.train_step(x, d, torch.rand(32, 3, generator=torch.Generator().manual_seed(k)))
+        assert mlp["lr"] == pytest.approx(1e-2 * (0.25 + 0.75 * 0.5 ** (k / 2)))  # the lr of step k
+        assert table["lr"] == 1e-2
+    constant = _cache(grid)
+    assert all(constant.settings.mlp_lr_factor(k) == 1.0 for k in (0, 7, 10_000))
+    # the schedule changes training: the same batches give other weights than the constant rate
+    a, b = _cache(grid, cache=decay), _cache(grid)
+    for k in range(6):
+        x, d = _batch(grid, 32, k)
+        t = torch.rand(32, 3, generator=torch.Generator().manual_seed(k))
+        a.train_step(x, d, t), b.train_step(x, d, t)
+    xq, dq = _batch(grid, 50, 99)
+    assert not torch.equal(a.query_raw(xq, dq), b.query_raw(xq, dq))
+
+
+def test_learning_rate_schedule_resumes_exactly():
+    decay = {**CACHE, "optimizer": {**CACHE["optimizer"], "lr_final_fraction": 0.3, "lr_half_life": 1.5}}
+    grid = _grid()
+    batches = [(*_batch(grid, 48, k), torch.rand(48, 3, generator=torch.Generator().manual_seed(k))) for k in range(8)]
+    whole = _cache(grid, cache=decay)
+    for x, d, t in batches:
+        whole.train_step(x, d, t)
+    first = _cache(grid, cache=decay)
+    for x, d, t in batches[:4]:
+        first.train_step(x, d, t)
+    buf = io.BytesIO()
+    torch.save(first.state_dict(), buf)
+    buf.seek(0)
+    resumed = _cache(grid, cache=decay)
+    resumed.load_state_dict(torch.load(buf, weights_only=True))
+    for x, d, t in batches[4:]:
+        resumed.train_step(x, d, t)
+    xq, dq = _batch(grid, 100, 77)
+    assert torch.equal(whole.query(xq, dq), resumed.query(xq, dq))
+
+
 def test_state_dict_round_trip_gives_identical_queries_and_training():
     grid = _grid()
     a = _cache(grid, seed=0)

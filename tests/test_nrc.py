@@ -861,6 +861,20 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
         NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.unbiased_fraction=most"]).renderer)
 
 
+def test_auto_mlp_learning_rate_decays_under_a_static_camera_and_light_only():
+    """cache.optimizer.lr_final_fraction=auto: the renderer's cache decays the MLP's rate to LR_FINAL_FRACTION's
+    static value under a static camera and light and keeps it constant under animate (a moving light must be
+    followed); a number stays as given."""
+    from nrc.cache.settings import LR_FINAL_FRACTION
+
+    assert LR_FINAL_FRACTION["animated"] == 1.0 and 0.0 < LR_FINAL_FRACTION["static"] < 1.0
+    for overrides, want in (([], LR_FINAL_FRACTION["static"]), (["renderer.animate.mode=sun"], 1.0),
+                            (["cache.optimizer.lr_final_fraction=0.5"], 0.5)):
+        cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=0.5", *overrides])
+        r = make_renderer("nrc", load_scene(cfg.scene), cfg)
+        assert r.cache.settings.lr_final_fraction == want, overrides
+
+
 def test_unbiased_warmup_frames_ramp_the_unbiased_fraction_from_one(monkeypatch):
     """training.unbiased_warmup_frames=W: frame 0's training paths are all unbiased, the fraction falls linearly to
     unbiased_fraction at frame W and stays there; 0 (the default) keeps unbiased_fraction from frame 0; a negative

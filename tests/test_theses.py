@@ -23,6 +23,8 @@ def test_thesis_configs_exist_and_set_the_theses_values():
     assert (s.cache.network.n_neurons, s.cache.network.n_hidden_layers) == (64, 6)
     assert s.encoding.position.n_levels == 12 and s.encoding.direction.n_bins == 4
     assert s.cache.optimizer.lr == s.encoding.position.lr == 0.01 and s.cache.ema.alpha == 0.99
+    # Mueller's relative L2 at a constant rate (S:535, S:710), not our floor, clamp and decay
+    assert (s.cache.loss.scale_floor, s.cache.loss.relative_clamp, s.cache.optimizer.lr_final_fraction) == (0, 0, 1)
     assert (s.renderer.termination.min_vertices, s.renderer.termination.p_continue) == (1, 0.5)
     assert (s.scene.volume.density_scale, s.scene.volume.albedo, s.scene.volume.g) == (0.6, 1.0, 0.8)
     assert s.scene.integrator.max_scatter == 32 and s.transmittance.name == "ratio"

@@ -148,6 +148,11 @@ class RadianceCache:
         return self._loss(raw, targets)
 
     @property
+    def mlp_lr(self) -> float:
+        """The MLP's learning rate for the next Adam step (``optimizer.lr`` times the schedule's factor)."""
+        return self.settings.mlp_adam.lr * self.settings.mlp_lr_factor(self.n_steps)
+
+    @property
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.network.parameters())
 
@@ -213,6 +218,7 @@ class RadianceCache:
             self.n_consecutive_skipped += 1
             return float(loss.detach())
         self.n_consecutive_skipped = 0
+        self.optimizer.param_groups[0]["lr"] = self.mlp_lr  # build_adam: the MLP's group first (never lazy)
         self.optimizer.step()
         self.ema.update()
         self.n_steps += 1
@@ -239,7 +245,7 @@ class RadianceCache:
 
 def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: Any, grid: DensityGrid,
                          device: torch.device | str, seed: int, training_paths: int | None = None,
-                         thick: bool = True) -> RadianceCache:
+                         thick: bool = True, animated: bool = False) -> RadianceCache:
     """Build a :class:`RadianceCache` from the ``cache``, ``encoding`` and ``extra_inputs`` config blocks.
 
     Args:
@@ -253,6 +259,7 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
             ``log2_hashmap_size: auto`` (:func:`nrc.cache.encodings.factory.auto_log2_hashmap_size`); None for a
             cache built on its own (``auto`` is then an error).
         thick: whether the medium is thick (the renderer's ``auto`` regime), for the same.
+        animated: whether the renderer's camera or light moves, for ``optimizer.lr_final_fraction: auto``.
 
     On CPU this also calls :func:`nrc.cache.allocator.retain_freed_memory` (process-wide glibc malloc
     tuning; without it large temporaries are page-faulted anew on every step).
@@ -262,7 +269,7 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
     """
     if torch.device(device).type == "cpu":
         retain_freed_memory()
-    settings = CacheSettings.from_config(ConfigReader(cache_cfg, "cache"))
+    settings = CacheSettings.from_config(ConfigReader(cache_cfg, "cache"), animated=animated)
     extras = ExtraInputs.from_config(ConfigReader(extra_inputs_cfg, "extra_inputs"))
     enc_cfg = ConfigReader(encoding_cfg, "encoding")
     pos_cfg, dir_cfg = enc_cfg.block("position"), enc_cfg.block("direction")

@@ -5,7 +5,10 @@ Keys (all validated; unknown keys are errors):
 * ``network``: ``n_neurons`` (width, 16..1024; NRC 64/128), ``n_hidden_layers`` (1..16; NRC 3..6),
   ``bf16`` (bfloat16 autocast for the MLP only).
 * ``optimizer`` (Adam of the MLP weights): ``lr``, ``beta1``, ``beta2``, ``eps``, ``weight_decay``
-  (L2 on MLP weights only). Hash-grid tables take ``lr``/``eps`` from their encoding block.
+  (L2 on MLP weights only); ``lr_final_fraction`` in ``(0, 1]`` or ``auto`` (:data:`LR_FINAL_FRACTION`; absent:
+  1) and ``lr_half_life`` (Adam steps, > 0): the MLP's learning rate falls from ``lr`` towards
+  ``lr_final_fraction x lr``, halving its distance every ``lr_half_life`` steps (1: constant;
+  :meth:`CacheSettings.mlp_lr_factor`). Hash-grid tables take ``lr``/``eps`` from their encoding block, unscheduled.
 * ``ema``: ``alpha`` in ``[0, 1)`` (0.99; 0 disables averaging); ``window_fraction`` in ``(0, 1]``: the average
   spans at most about this fraction of the steps so far (1: the plain debiased EMA; :mod:`nrc.cache.ema`).
 * ``loss``: ``target_clamp`` (> 0, radiance units): targets are clamped to ``[-c, c]``; ``scale_floor`` (>= 0):
@@ -27,6 +30,11 @@ from nrc.config import ConfigReader
 from nrc.cache.optim import AdamSettings
 
 
+LR_FINAL_FRACTION = {"static": 0.2, "animated": 1.0}  # optimizer.lr_final_fraction: auto, by whether the camera or
+# light moves: a static scene's cache settles at a fifth of the MLP's rate (it drifted bright at the full rate); a moving
+# light's keeps the full rate to follow it (docs/measurements/learning.md, "A decaying learning rate")
+
+
 @dataclass(frozen=True)
 class CacheSettings:
     """Validated contents of the ``cache`` config block (see the module docstring for units and ranges)."""
@@ -44,9 +52,20 @@ class CacheSettings:
     loss_relative_clamp: float = 0.0
     loss_clamp_to: str = "prediction"
     compile_training: bool = False
+    lr_final_fraction: float = 1.0
+    lr_half_life: float = 20.0
+
+    def mlp_lr_factor(self, step: int) -> float:
+        """The MLP's learning rate at Adam step ``step`` (0-based) over ``optimizer.lr``: ``F + (1 - F) 2^(-step / H)``,
+        ``F = lr_final_fraction``, ``H = lr_half_life`` (1 throughout where ``F`` is 1)."""
+        if self.lr_final_fraction >= 1.0:
+            return 1.0
+        return self.lr_final_fraction + (1.0 - self.lr_final_fraction) * 0.5 ** (step / self.lr_half_life)
 
     @classmethod
-    def from_config(cls, cfg: ConfigReader) -> CacheSettings:
+    def from_config(cls, cfg: ConfigReader, animated: bool = False) -> CacheSettings:
+        """``animated``: whether the renderer's camera or light moves, for ``optimizer.lr_final_fraction: auto``
+        (:data:`LR_FINAL_FRACTION`)."""
         net = cfg.block("network")
         opt = cfg.block("optimizer")
         ema = cfg.block("ema")
@@ -60,6 +79,10 @@ class CacheSettings:
                 eps=opt.get_float("eps", lo=0.0),
                 weight_decay=opt.get_float("weight_decay", 0.0, lo=0.0),
             ),
+            lr_final_fraction=(LR_FINAL_FRACTION["animated" if animated else "static"]
+                               if opt.get_raw("lr_final_fraction", 1.0) == "auto" else
+                               opt.get_float("lr_final_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0)),
+            lr_half_life=opt.get_float("lr_half_life", 20.0, lo=0.0, lo_open=True),
             betas=(opt.get_float("beta1", 0.9, lo=0.0, hi=1.0, hi_open=True),
                    opt.get_float("beta2", 0.99, lo=0.0, hi=1.0, hi_open=True)),
             ema_alpha=ema.get_float("alpha", lo=0.0, hi=1.0, hi_open=True),

@@ -4,7 +4,8 @@ TensorBoard tags: ``loss/step`` (every training step), ``loss/frame`` (mean per 
 for ``trace`` (with its parts ``free_flight`` and ``shadow``), ``infer``, ``train`` (what the frame waited for),
 ``train_work`` (the steps on the frame's records, wherever they ran) and ``frame`` (seconds), ``error/rel_mse``
 and ``error/mse`` when a reference is given, ``error/flicker`` (the mean frame-to-frame change over the pixels
-that see the medium, relative to their mean), ``debias/<counter>`` with ``renderer.debias`` (``debias.py``),
+that see the medium, relative to their mean), ``train/lr_mlp`` (the MLP's learning rate for the next step),
+``debias/<counter>`` with ``renderer.debias`` (``debias.py``),
 ``reuse/<counter>`` with ``renderer.reuse``, ``light/<counter>`` (the light sampling), ``image/frame`` /
 ``image/output`` (tone-mapped) every ``image_every`` frames, each with one exposure for the whole run (with
 ``exposure: auto``, the exposure of its first logged image) so the images show the convergence.
@@ -75,6 +76,8 @@ class FrameLog:
                 self.writer.add_scalar("loss/frame" if key == "loss" else f"error/{key}", value, frame)
             elif key == "flicker" and value is not None:  # mean |I_t - I_t-1| over the medium (renderer._flicker)
                 self.writer.add_scalar("error/flicker", value, frame)
+            elif key == "lr_mlp" and value is not None:  # the MLP's learning rate (cache.optimizer.lr_final_fraction)
+                self.writer.add_scalar("train/lr_mlp", value, frame)
             elif key in LIGHT_SCALARS and value is not None:
                 self.writer.add_scalar(f"light/{key}", value, frame)
             elif key.startswith("reuse_") and value is not None:  # reservoir reuse counters (nrc/render/reuse)

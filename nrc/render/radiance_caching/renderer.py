@@ -104,7 +104,7 @@ class NRCRenderer:
         groups = settings.cache
         self.cache = cache if cache is not None else build_radiance_cache(
             groups.cache, groups.encoding, groups.extra_inputs, scene.grid, self.device, scene.integrator.seed,
-            training_paths=tr.n_paths, thick=settings.regime == "thick")
+            training_paths=tr.n_paths, thick=settings.regime == "thick", animated=st.animate != "none")
         if st.cuda_graphs and hasattr(self.cache, "use_graphs"):  # the training step's forward and backward too
             self.cache.use_graphs()
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
@@ -415,6 +415,7 @@ class NRCRenderer:
                 else:
                     output = image
                 stats["flicker"] = self._flicker(output, previous)
+                stats["lr_mlp"] = getattr(self.cache, "mlp_lr", None)  # the MLP's rate after the frame's steps so far
                 previous = output.clone()
                 out_np = output.cpu().numpy()
                 if self.reference is not None:
@@ -473,6 +474,9 @@ class NRCRenderer:
             "cache_parameters": self.cache.n_parameters if hasattr(self.cache, "n_parameters") else None,
             "cache_log2_hashmap_size": getattr(self.cache, "log2_hashmap_size", None),
             "cache_steps": getattr(self.cache, "n_steps", None),
+            # the MLP's learning-rate schedule (cache.optimizer.lr_final_fraction, auto resolved) and its rate now
+            "cache_lr_final_fraction": getattr(getattr(self.cache, "settings", None), "lr_final_fraction", None),
+            "cache_mlp_lr": getattr(self.cache, "mlp_lr", None),
             "cache_skipped_steps": getattr(self.cache, "n_skipped_steps", None),
             "training_backend": getattr(self.cache, "training_backend", None),
             "training_backend_reason": getattr(self.cache, "training_backend_reason", None),
