@@ -41,9 +41,11 @@ from nrc.scene import animated_scene
 
 
 def animation(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int], frames: int, score_every: int,
-              mode: str, ref_spp: int, ref_chunk: int, ref_dir: Path, log: Any = print) -> dict[str, Any]:
+              mode: str, ref_spp: int, ref_chunk: int, ref_dir: Path, log: Any = print,
+              nrc_seed: int = SEED_BASE) -> dict[str, Any]:
     """The whole-run comparison (module docstring); rows per configuration with ``whole_s`` (wall time of all
-    frames), ``whole_oidn_s`` (plus the denoiser on every frame) and the scores of the scored frames."""
+    frames), ``whole_oidn_s`` (plus the denoiser on every frame) and the scores of the scored frames. ``nrc_seed``:
+    the NRC runs' seed (another seed, another draw of the same configuration; the path tracer's stay)."""
     anim = [f"renderer.animate.mode={mode}"]
     pt = setup(["renderer=pt", "renderer.backend=compiled", *preset])  # the preset may choose another backend
     pcfg, pscene = pt.cfg, pt.scene
@@ -77,7 +79,7 @@ def animation(preset: list[str], configs: dict[str, list[str]], pt_spp: list[int
         run = setup(["renderer=nrc", *preset, *anim, *overrides, "renderer.log.tensorboard=false",
                      "renderer.checkpoint_every=0"])
         cfg = run.cfg
-        ims, ts, _, _ = nrc_frames(cfg, run.scene, frames, SEED_BASE, keep=scored)
+        ims, ts, _, _ = nrc_frames(cfg, run.scene, frames, nrc_seed, keep=scored)
         whole = time.perf_counter() - t0
         rows.append({"config": name, "spp": int(cfg.scene.integrator.spp), "whole_s": whole,
                      "frame_s": float(np.median(ts)), **score(ims, refs, masks)})
@@ -127,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ref-spp", type=int, default=512, help="spp of each scored frame's reference")
     p.add_argument("--ref-chunk", type=int, default=64)
     p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--nrc-seed", type=int, default=SEED_BASE,
+                   help="the NRC runs' seed (scene.integrator.seed does not reach them)")
     p.add_argument("overrides", nargs="*", help="Hydra overrides for every run")
     args = p.parse_intermixed_args(argv)
     if args.frames < args.score_every or args.score_every < 1:
@@ -137,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         "nrc": ["renderer.backend=compiled"]}
     res = animation([*preset(args.preset), *args.overrides], configs,
                               [int(s) for s in args.pt_spp.split(",")], args.frames, args.score_every, args.mode,
-                              args.ref_spp, args.ref_chunk, REPO / "data" / "references")
+                              args.ref_spp, args.ref_chunk, REPO / "data" / "references", nrc_seed=args.nrc_seed)
     table = markdown(res)
     meta = {"argv": list(sys.argv[1:] if argv is None else argv), "machine": machine()}
     write_result(args.out, "animation", res, table, meta)

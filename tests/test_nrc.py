@@ -824,7 +824,7 @@ def test_the_thick_regime_starts_at_optical_depth_25():
 
 def test_auto_unbiased_fraction_follows_the_optical_depth():
     """training.unbiased_fraction=auto: every training path runs to the end under a static camera and light, thin
-    or thick, a quarter of them under a moving light (animate);
+    or thick, and under a moving light (animate);
     carry_frames=auto: 4 in the thick cloud of albedo >= 0.99, 0 else; a fixed number stays as given; other words
     are config errors naming the key."""
     from nrc.render.radiance_caching.settings import NRCSettings, auto_unbiased_fraction
@@ -835,7 +835,7 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
         fraction, tau = auto_unbiased_fraction(scene)
         assert fraction == 1.0
         assert tau == pytest.approx(scene_optical_depth(scene).median, rel=0.25)  # on a smaller camera
-        assert auto_unbiased_fraction(scene, "sun")[0] == 0.25  # a moving light: the quarter (docs/measurements/nrc_defaults.md)
+        assert auto_unbiased_fraction(scene, "sun")[0] == 1.0  # a moving light too (docs/measurements/learning.md)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",
                    "renderer.training.carry_frames=auto", "scene.volume.density_scale=4"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None
@@ -852,7 +852,7 @@ def test_auto_unbiased_fraction_follows_the_optical_depth():
     assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 1.0
     sun = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=4", "renderer.animate.mode=sun"])
     r = make_renderer("nrc", load_scene(sun.scene), sun, cache=StubCache(lambda x, d: torch.zeros_like(x)))
-    assert r.settings.training.unbiased_fraction == 0.25 and r.settings.training.carry_frames == 0
+    assert r.settings.training.unbiased_fraction == 1.0 and r.settings.training.carry_frames == 0  # moving: moderate
     with pytest.raises(ConfigError, match="renderer.training.carry_frames"):
         NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.carry_frames=-1"]).renderer)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=0.1"])

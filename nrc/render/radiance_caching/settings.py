@@ -189,8 +189,9 @@ def _carry_frames(tr: ConfigReader) -> int | None:
 
 
 THICK_OPTICAL_DEPTH = 25.0  # auto: a scene whose median optical depth reaches this is thick (docs/nrc.md, "Learning speed")
-UNBIASED_FRACTION = {"static": 1.0, "animated": 0.25}  # auto's two values, by whether the camera or light moves
-# (docs/measurements/learning.md, "A loss for unbiased targets"; docs/measurements/nrc_defaults.md, "A whole animation")
+UNBIASED_FRACTION = {"static": 1.0, "animated": 1.0}  # auto's values, by whether the camera or light moves: every path
+# unbiased in both since 2026-12-07 (a quarter under a moving light left the turning sun 7 % dark with cache.loss's clamp;
+# docs/measurements/learning.md, "A loss for unbiased targets" and "A decaying learning rate")
 CARRY_FRAMES = {"moderate": 0, "thick": 4}  # auto's two values (docs/nrc.md, "Current defaults and why")
 CARRY_MIN_ALBEDO = 0.99  # auto carries only in a medium at least this white (cloud water; docs/measurements/nrc_frames.md)
 OPTICAL_DEPTH_PIXELS = 64 * 36  # auto: the optical depth is taken over a camera of about this many pixels
@@ -225,9 +226,9 @@ def auto_carry_frames(regime: str, albedo: float) -> int:
 def auto_unbiased_fraction(scene: Any, animate: str = "none") -> tuple[float, float]:
     """``(fraction, median optical depth)``: :data:`UNBIASED_FRACTION` (every training path unbiased under a static
     camera and light, thin or thick: with the loss's floor and clamp (``cache.loss``) unbiased targets learn faster
-    than self-training at optical depth 7 to 196, docs/measurements/learning.md, "A loss for unbiased targets"; a
-    quarter under a moving light, where the cache overshot, docs/measurements/nrc_defaults.md, "A whole animation"),
-    and the optical depth of :func:`auto_training_regime`."""
+    than self-training at optical depth 7 to 196, docs/measurements/learning.md, "A loss for unbiased targets"; and
+    under a moving light, where a quarter with that loss left the turning sun 7 % dark and all of them were more
+    accurate, "A decaying learning rate"), and the optical depth of :func:`auto_training_regime`."""
     _, tau = auto_training_regime(scene, animate)
     return _auto_unbiased_fraction(animate), tau
 
