@@ -822,20 +822,20 @@ def test_the_thick_regime_starts_at_optical_depth_25():
         assert regime == want and (tau >= THICK_OPTICAL_DEPTH) == (want == "thick") and 20 < tau < 35
 
 
-def test_auto_unbiased_fraction_follows_the_optical_depth():
+def test_auto_unbiased_fraction_and_carry_frames():
     """training.unbiased_fraction=auto: every training path runs to the end under a static camera and light, thin
     or thick, and under a moving light (animate);
     carry_frames=auto: 4 in the thick cloud of albedo >= 0.99, 0 else; a fixed number stays as given; other words
     are config errors naming the key."""
-    from nrc.render.radiance_caching.settings import NRCSettings, auto_unbiased_fraction
+    from nrc.render.radiance_caching.settings import NRCSettings, auto_training_regime, auto_unbiased_fraction
     from nrc.volume.optical_depth import scene_optical_depth
 
+    assert auto_unbiased_fraction() == 1.0
+    assert auto_unbiased_fraction("sun") == 1.0  # a moving light too (docs/measurements/learning.md)
     for density in (0.5, 4.0):
         scene = load_scene(compose([*SMALL, f"scene.volume.density_scale={density}"]).scene)
-        fraction, tau = auto_unbiased_fraction(scene)
-        assert fraction == 1.0
+        _, tau = auto_training_regime(scene)
         assert tau == pytest.approx(scene_optical_depth(scene).median, rel=0.25)  # on a smaller camera
-        assert auto_unbiased_fraction(scene, "sun")[0] == 1.0  # a moving light too (docs/measurements/learning.md)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",
                    "renderer.training.carry_frames=auto", "scene.volume.density_scale=4"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None

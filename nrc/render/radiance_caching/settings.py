@@ -223,18 +223,13 @@ def auto_carry_frames(regime: str, albedo: float) -> int:
     return CARRY_FRAMES[regime] if albedo >= CARRY_MIN_ALBEDO else 0
 
 
-def auto_unbiased_fraction(scene: Any, animate: str = "none") -> tuple[float, float]:
-    """``(fraction, median optical depth)``: :data:`UNBIASED_FRACTION` (every training path unbiased under a static
-    camera and light, thin or thick: with the loss's floor and clamp (``cache.loss``) unbiased targets learn faster
-    than self-training at optical depth 7 to 196, docs/measurements/learning.md, "A loss for unbiased targets"; and
-    under a moving light, where a quarter with that loss left the turning sun 7 % dark and all of them were more
-    accurate, "A decaying learning rate"), and the optical depth of :func:`auto_training_regime`."""
-    _, tau = auto_training_regime(scene, animate)
-    return _auto_unbiased_fraction(animate), tau
-
-
-def _auto_unbiased_fraction(animate: str) -> float:
-    """:data:`UNBIASED_FRACTION` for ``animate`` (``none``: static; else animated)."""
+def auto_unbiased_fraction(animate: str = "none") -> float:
+    """``unbiased_fraction: auto``: :data:`UNBIASED_FRACTION` for ``animate`` (``none``: static; else animated). Every
+    training path unbiased under a static camera and light, thin or thick (with the loss's floor and clamp,
+    ``cache.loss``, unbiased targets learn faster than self-training at optical depth 7 to 196:
+    docs/measurements/learning.md, "A loss for unbiased targets"), and under a moving light, where a quarter with
+    that loss left the turning sun 7 % dark and all of them were more accurate ("A decaying learning rate"). It does
+    not depend on the scene's optical depth."""
     return UNBIASED_FRACTION["static" if animate == "none" else "animated"]
 
 
@@ -356,9 +351,10 @@ class NRCRendererSettings:
 def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettings:
     """The ``auto`` rules of ``renderer=nrc`` resolved for ``scene`` (a no-op on resolved settings): the training
     image sized to the pixels that see the medium (:func:`~nrc.render.radiance_caching.training_set.
-    auto_training_size`), and, where ``unbiased_fraction``, ``carry_frames`` or the renderer's own cache's
-    ``encoding.position.log2_hashmap_size`` is ``auto``, the scene's regime (:func:`auto_training_regime`: thick =
-    median optical depth >= :data:`THICK_OPTICAL_DEPTH`, static camera and lights) and the values that follow from it."""
+    auto_training_size`), ``unbiased_fraction`` (:func:`auto_unbiased_fraction`), and, where ``carry_frames`` or the
+    renderer's own cache's ``encoding.position.log2_hashmap_size`` is ``auto``, the scene's regime
+    (:func:`auto_training_regime`: thick = median optical depth >= :data:`THICK_OPTICAL_DEPTH`, static camera and
+    lights) and the values that follow from it."""
     if settings.resolved:
         return settings
     from nrc.render.radiance_caching.training_set import auto_training_size, medium_pixel_mask
@@ -370,12 +366,12 @@ def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettin
         w, h = auto_training_size(int(mask.sum()), cam.width, cam.height, tr.paths_per_pixel, tr.min_paths,
                                   tr.max_paths)
         tr = replace(tr, width=w, height=h)
+    if tr.unbiased_fraction is None:
+        tr = replace(tr, unbiased_fraction=auto_unbiased_fraction(st.animate))
     hash_auto = settings.cache is not None and settings.cache.log2_hashmap_size == "auto"
     regime, tau = None, None
-    if tr.unbiased_fraction is None or tr.carry_frames is None or hash_auto:
+    if tr.carry_frames is None or hash_auto:
         regime, tau = auto_training_regime(scene, st.animate)
-        if tr.unbiased_fraction is None:
-            tr = replace(tr, unbiased_fraction=_auto_unbiased_fraction(st.animate))
         if tr.carry_frames is None:
             tr = replace(tr, carry_frames=auto_carry_frames(regime, scene.albedo))
     return replace(settings, nrc=replace(st, training=tr), resolved=True, optical_depth=tau,
