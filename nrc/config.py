@@ -134,6 +134,26 @@ class ConfigReader:
             raise ConfigError(f"{self.key(name)} must be one of {sorted(canonical.values())}, got {value!r}")
         return canonical[value.lower()]
 
+    def get_int_or_auto(self, name: str, default: Any = _REQUIRED, lo: int | None = None,
+                        hi: int | None = None) -> int | None:
+        """``auto`` (``None``: the caller's rule decides) or an integer as :meth:`get_int` reads it; ``default``
+        may be ``"auto"``."""
+        return self._or_auto(name, default, "an integer", lambda d: self.get_int(name, d, lo, hi))
+
+    def get_float_or_auto(self, name: str, default: Any = _REQUIRED, lo: float | None = None,
+                          hi: float | None = None, lo_open: bool = False, hi_open: bool = False) -> float | None:
+        """``auto`` (``None``: the caller's rule decides) or a number as :meth:`get_float` reads it; ``default``
+        may be ``"auto"``."""
+        return self._or_auto(name, default, "a number", lambda d: self.get_float(name, d, lo, hi, lo_open, hi_open))
+
+    def _or_auto(self, name: str, default: Any, kind: str, read: Any) -> Any:
+        value = self._get(name)
+        if value == "auto" or (value is None and default == "auto"):
+            return None
+        if isinstance(value, str):
+            raise ConfigError(f"{self.key(name)} must be auto or {kind}, got {value!r}")
+        return read(default)
+
     def get_raw(self, name: str, default: Any = None) -> Any:
         """The value of ``name`` as it is (``default`` when absent or null), for values the caller checks."""
         value = self._get(name)

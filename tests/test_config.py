@@ -62,3 +62,26 @@ def test_transport_keys_shared_by_pt_and_nrc_live_in_one_file():
         assert not set(own) & set(shared), f"{name}.yaml repeats {set(own) & set(shared)}"
         composed = compose([f"renderer={name}"]).renderer
         assert {k: composed[k] for k in shared} == dict(shared) and composed.name == name
+
+
+def test_auto_or_number_keys():
+    """``ConfigReader.get_int_or_auto`` / ``get_float_or_auto``: ``auto`` reads as None (also as the default), a
+    number as ``get_int`` / ``get_float`` read it with their bounds; another word names the key and what it takes."""
+    from nrc.config import ConfigReader
+    from nrc.errors import ConfigError
+
+    r = ConfigReader({"a": "auto", "b": 3, "c": 0.5, "d": "autoo", "e": -1}, "blk")
+    assert r.get_int_or_auto("a") is None
+    assert r.get_int_or_auto("b", lo=0) == 3
+    assert r.get_float_or_auto("c", lo=0.0, hi=1.0) == 0.5
+    assert r.get_int_or_auto("missing", "auto") is None
+    assert r.get_float_or_auto("missing2", 0.25) == 0.25
+    with pytest.raises(ConfigError, match=r"blk\.d must be auto or an integer, got 'autoo'"):
+        r.get_int_or_auto("d")
+    with pytest.raises(ConfigError, match=r"blk\.d must be auto or a number"):
+        r.get_float_or_auto("d")
+    with pytest.raises(ConfigError, match=r"blk\.e must be >= 0"):
+        r.get_int_or_auto("e", lo=0)
+    with pytest.raises(ConfigError, match=r"blk\.missing3 is required"):
+        r.get_float_or_auto("missing3")
+    r.finish()  # every key was asked for

@@ -111,13 +111,12 @@ def _build_hashgrid(cfg: ConfigReader, n_dims: int, generator: torch.Generator,
         raise ConfigError(f"{cfg.key('otype')}: HashGrid encodes 3-D positions, not {n_dims}-D inputs")
     n_levels = cfg.get_int("n_levels", lo=1)
     n_features = cfg.get_int("n_features_per_level", lo=1)
-    if cfg.get_raw("log2_hashmap_size") == "auto":
+    log2_t = cfg.get_int_or_auto("log2_hashmap_size", lo=1, hi=24)
+    if log2_t is None:
         if training_paths is None:
             raise ConfigError(f"{cfg.key('log2_hashmap_size')}: 'auto' sizes the table to the NRC renderer's training "
                               "paths; give an integer for a cache built on its own")
         log2_t = auto_log2_hashmap_size(training_paths, thick)
-    else:
-        log2_t = cfg.get_int("log2_hashmap_size", lo=1, hi=24)
     if n_levels << log2_t >= 2**31:
         raise ConfigError(f"{cfg.key('n_levels')} x 2^log2_hashmap_size must be < 2^31 (int32 rows)")
     base = cfg.get_int("base_resolution", lo=1)

@@ -176,16 +176,12 @@ def _training_size(tr: ConfigReader) -> dict[str, Any]:
 
 def _unbiased_fraction(tr: ConfigReader) -> float | None:
     """``training.unbiased_fraction``: ``auto`` (None: :func:`auto_unbiased_fraction`) or a number in [0, 1]."""
-    if tr.get_raw("unbiased_fraction", None) == "auto":
-        return None
-    return tr.get_float("unbiased_fraction", lo=0.0, hi=1.0)
+    return tr.get_float_or_auto("unbiased_fraction", lo=0.0, hi=1.0)
 
 
 def _carry_frames(tr: ConfigReader) -> int | None:
     """``training.carry_frames``: ``auto`` (None: :func:`auto_training_regime`) or an integer >= 0."""
-    if tr.get_raw("carry_frames", None) == "auto":
-        return None
-    return tr.get_int("carry_frames", lo=0)
+    return tr.get_int_or_auto("carry_frames", lo=0)
 
 
 THICK_OPTICAL_DEPTH = 25.0  # auto: a scene whose median optical depth reaches this is thick (docs/nrc.md, "Learning speed")
@@ -239,9 +235,7 @@ RING_CAP = 1 << 18  # ... and at most this many (the fixed size used before auto
 
 def _ring_buffer(tr: ConfigReader) -> int | None:
     """``training.ring_buffer``: ``auto`` or an integer >= 1."""
-    if tr.get_raw("ring_buffer", "auto") == "auto":
-        return None
-    return tr.get_int("ring_buffer", lo=1)
+    return tr.get_int_or_auto("ring_buffer", "auto", lo=1)
 
 
 def ring_size(training: TrainingSettings) -> int:
