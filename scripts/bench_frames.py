@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from lab import REPO
-from lab.render import renderer
+from lab.render import renderer, stopped_by
 
 VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"  # ../shared/data/ from the repo root
 
@@ -81,6 +81,7 @@ def main() -> None:
     nrc = renderer(["renderer=nrc", *scene, f"frames={args.frames}", "renderer.log.tensorboard=false", *args.nrc],
                    absolute=True)
     result = nrc.render()
+    stopped_by(result.metrics, args.frames)
     nrc_process = time.perf_counter() - t0
     h = result.metrics["history"]
     k = slice(args.skip, args.frames)

@@ -20,6 +20,7 @@ import torch
 
 from lab import REPO
 from lab.render import renderer as nrc_renderer
+from lab.render import stopped_by
 
 VDB = REPO.parent / "shared" / "data" / "wdas_cloud_sixteenth.vdb"  # ../shared/data/ from the repo root
 
@@ -49,6 +50,7 @@ def main() -> None:
                              f"scene.camera.height={args.height}", f"frames={args.frames}",
                              f"renderer.backend={args.backend}", "renderer.log.tensorboard=false", *args.overrides])
     result = renderer.render()
+    stopped_by(result.metrics, args.frames)
     total = time.perf_counter() - t0
     h = result.metrics["history"]
     stages = {k: statistics.median(h[f"time_{k}_s"][args.skip:]) for k in ("trace", "infer", "train", "frame")}

@@ -197,7 +197,7 @@ def _range(values: list[float], digits: int = 3) -> str:
 
 
 CROSSOVER = "crossover_160x90"  # docs/results/<this>/map.json: scripts/crossover_map.py's output
-ANIMATION = "animation_sun_160x90_thick_variants"  # scripts/bench_animation.py's output; its first NRC row: 1/4
+ANIMATION = "animation_sun_160x90_thick_variants"  # scripts/bench_animation.py's output; its row `nrc`: the defaults
 
 
 def crossover_summary(docs: Path, link: str = "[`docs/results.md`](docs/results.md)") -> str | None:
@@ -270,8 +270,9 @@ def _other_sizes(docs: Path) -> dict[str, dict]:
 
 
 def _animation_row(docs: Path) -> tuple[dict, dict] | None:
-    """``(animation, NRC row)`` of :data:`ANIMATION`'s ``summary.json`` (``scripts/bench_animation.py``); the
-    animation gets ``preset``, the scene type its command named (``--preset``, else the default scene)."""
+    """``(animation, NRC row)`` of :data:`ANIMATION`'s ``summary.json`` (``scripts/bench_animation.py``): the row of
+    the configuration named ``nrc`` (the defaults), else the first NRC row; the animation gets ``preset``, the scene
+    type its command named (``--preset``, else the default scene)."""
     summary = _read_json(docs / "results" / ANIMATION / "summary.json") or {}
     a = summary.get("animation")
     rows = [r for r in (a or {}).get("rows", []) if r.get("config") != "pt" and r.get("ratio_vs_pt_oidn")]
@@ -279,7 +280,7 @@ def _animation_row(docs: Path) -> tuple[dict, dict] | None:
         return None
     argv = (summary.get("meta") or {}).get("argv") or []
     preset = argv[argv.index("--preset") + 1] if "--preset" in argv[:-1] else "the default scene"
-    return {**a, "preset": preset}, rows[0]
+    return {**a, "preset": preset}, next((r for r in rows if r.get("config") == "nrc"), rows[0])
 
 
 def crossover_section(docs: Path) -> list[str]:

@@ -40,7 +40,7 @@ from omegaconf import open_dict
 
 from lab import REPO, SHARED_DATA, repo_relative
 from lab.machine import machine
-from lab.render import Setup, setup
+from lab.render import Setup, setup, stopped_by
 from nrc.config import absolute_paths, compose
 from nrc.evaluation.reference import REF_SEED, check_independent, default_reference_path, read_reference
 from nrc.io.png import auto_exposure, tonemap
@@ -187,7 +187,7 @@ def comparison(args: argparse.Namespace, log: dict[str, Any]) -> tuple[float, in
         last["image"] = np.asarray(image, np.float32)
 
     t0 = time.perf_counter()
-    _nrc(nrc_cfg).render(progress=True, on_frame=on_frame)
+    stopped_by(_nrc(nrc_cfg).render(progress=True, on_frame=on_frame).metrics, nrc_cfg.frames)
     nrc_total = time.perf_counter() - t0
     nrc_frame = float(np.median(frame_times[len(frame_times) // 2:]))
 
@@ -300,7 +300,7 @@ def animation(args: argparse.Namespace, exposure: float, spp: int, log: dict[str
         right = _label(tonemap(np.asarray(image, np.float32), exposure, "aces"), f"NRC, frame {frame + 1}")
         frames.append(np.concatenate([left, np.full((left.shape[0], 2, 3), 255, np.uint8), right], 1))
 
-    renderer.render(progress=True, on_frame=on_frame)
+    stopped_by(renderer.render(progress=True, on_frame=on_frame).metrics, args.anim_frames)
     iio.imwrite(args.out / "sun.webp", np.stack(frames), duration=120, loop=0, quality=80)
     log["animation"] = {"frames": args.anim_frames, "warmup_frames": args.anim_warmup,
                         "degrees_per_frame": degrees, "pt_spp": spp,

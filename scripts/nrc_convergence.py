@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lab.render import setup
+from lab.render import setup, stopped_by
 from nrc.denoise import denoise  # noqa: E402
 from nrc.metrics import mean_ratio, medium_mask, rel_mse  # noqa: E402
 from nrc.evaluation.reference import check_independent, read_reference  # noqa: E402
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> dict:
                          "mean_ratio_medium": mean_ratio(img, ref.image, mask)})
             print(name, json.dumps(rows[-1]), flush=True)
 
-        run.renderer().render(progress=False, on_frame=on_frame)
+        stopped_by(run.renderer().render(progress=False, on_frame=on_frame).metrics, run.cfg.frames)
         out[name] = rows
     if args.out is not None:
         args.out.write_text(json.dumps({"preset": args.preset, "scene": scene, "variants": args.variant,

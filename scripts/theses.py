@@ -99,7 +99,12 @@ LADDER_OURS: list[tuple[str, list[str]]] = [
     ("cache target indirect (ours)", ["renderer.cache_target=indirect"]),
     ("unbiased fraction and carry auto (ours)", ["renderer.training.unbiased_fraction=auto",
                                                  "renderer.training.carry_frames=auto"]),
+    ("our loss (floor 1, clamp 20 x the prediction) and MLP rate (decaying to a fifth) (ours)",
+     ["cache.loss.scale_floor=1.0", "cache.loss.relative_clamp=20.0", "cache.loss.clamp_to=prediction",
+      "cache.optimizer.lr_final_fraction=auto", "cache.optimizer.lr_half_life=20"]),
     ("termination P(continue) 0 (ours)", ["renderer.termination.p_continue=0.0"]),
+    ("our network (5 hidden layers, weight decay 1e-6) and ring buffer (auto) (ours)",
+     ["cache.network.n_hidden_layers=5", "cache.optimizer.weight_decay=1e-6", "renderer.training.ring_buffer=auto"]),
     ("our encoding (hash grid: 8 levels to the grid's resolution, table auto, OB16)",
      ["encoding=hashgrid_oneblob", "encoding.position.n_levels=8", "encoding.position.log2_hashmap_size=auto",
       "encoding.direction.n_bins=16"]),
@@ -471,6 +476,13 @@ class Experiment:
     explain: list[tuple[str, list[str]]] = dataclasses.field(default_factory=list)
     plot: bool = False  # the thesis shows a plot: ours beside it
     reuse: str | None = None  # the id whose measurement this one reads (the same runs, another question)
+
+    def ladder(self) -> list[tuple[str, list[str]]]:
+        """The ``explain`` steps without the overrides of keys a variant sets (the variants are the experiment's
+        subject: a step must not undo one, e.g. our ring buffer on S-4.2's 'no ring buffer'); empty steps dropped."""
+        subject = {o.split("=", 1)[0].lstrip("+~") for v in self.variants.values() for o in v}
+        steps = [(name, [o for o in ovs if o.split("=", 1)[0] not in subject]) for name, ovs in self.explain]
+        return [(name, ovs) for name, ovs in steps if ovs]
 
 
 SCALE = ("the frame 64x36 (the theses: 1920x1080) and the training image 32x32 paths x 4 records = 4 batches of "
@@ -916,7 +928,7 @@ def run_experiment(exp: Experiment, scale: Scale, saved: dict | None = None) -> 
     if verdict == "disagrees" and exp.explain and not exp.reuse and scale.explain:
         extra: list[str] = []
         small = dataclasses.replace(scale, runs=scale.runs_of(exp, ladder=True))
-        for step, ovs in exp.explain[:2] if scale.quick else exp.explain:  # quick: the ladder's first steps
+        for step, ovs in exp.ladder()[:2] if scale.quick else exp.ladder():  # quick: the ladder's first steps
             extra = [*extra, *ovs]
             v, r = exp.verdict(MEASURE[exp.kind](exp, small, extra))
             ladder.append({"step": step, "overrides": list(ovs), "verdict": v, "reason": r})
@@ -1149,7 +1161,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ref-spp", type=int, default=1024, help="the references' spp (S: 1024)")
     p.add_argument("--no-explain", action="store_true", help="no ladder for a disagreement (it costs ~3x the run)")
     p.add_argument("--explain-only", action="store_true",
-                   help="the ladders of the saved results' disagreements, their measurements kept (no re-run)")
+                   help="the ladders of the saved results' disagreements, their measurements kept (no re-run); "
+                   "with --force also the ladders already measured (after a change of our defaults)")
     p.add_argument("--force", action="store_true", help="re-run experiments whose json exists")
     p.add_argument("--report", action="store_true", help="only regenerate the pages from the jsons")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -1185,8 +1198,8 @@ def main(argv: list[str] | None = None) -> int:
         for i in ids:
             path = OUT / f"{i}.json"
             saved = json.loads(path.read_text()) if path.is_file() else None
-            if saved is None or not fresh(path, scale) or saved["verdict"] != "disagrees" or saved.get("ladder") \
-                    or not BY_ID[i].explain or BY_ID[i].reuse:
+            if saved is None or not fresh(path, scale) or saved["verdict"] != "disagrees" \
+                    or (saved.get("ladder") and not args.force) or not BY_ID[i].explain or BY_ID[i].reuse:
                 continue
             res = run_experiment(BY_ID[i], dataclasses.replace(scale, explain=True), saved)
             res["seconds"] += saved.get("seconds", 0.0)

@@ -164,7 +164,9 @@ def test_crossover_summary_states_where_nrc_pays_off(tmp_path):
     assert any(line.startswith("**At 480 x 270**") for line in ex.crossover_section(tmp_path))
     a = tmp_path / "results" / ex.ANIMATION
     a.mkdir(parents=True)
-    rows = [{"config": "pt", "spp": 1, "whole_oidn_s": 70.0},
+    rows = [{"config": "pt", "spp": 1, "whole_oidn_s": 70.0},  # a variant first: the summary quotes the defaults' row
+            {"config": "nrc_quarter", "whole_oidn_s": 60.0, "ratio_vs_pt_oidn": 0.9, "ratio_vs_pt": 0.3,
+             "extrapolated_oidn": False},
             {"config": "nrc", "whole_oidn_s": 66.0, "ratio_vs_pt_oidn": 0.8, "ratio_vs_pt": 0.2,
              "extrapolated_oidn": False}]
     (a / "summary.json").write_text(json.dumps({"meta": {"argv": ["--frames", "60", "--preset", "thick"]},

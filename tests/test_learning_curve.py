@@ -146,3 +146,18 @@ def test_a_tiny_run_end_to_end(tmp_path):
     assert "| d5 | default | 2 |" in (tmp_path / "out" / "summary.md").read_text()
     again = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)  # not run again
     assert again.returncode == 0 and "done in" not in again.stdout, again.stderr[-3000:]
+
+
+def test_a_signal_that_stopped_the_nrc_run_ends_the_lab_tool_with_one_line(lc, capsys):
+    """The NRC renderer stops after the current frame on SIGINT / SIGTERM and returns; the lab tools then exit with
+    the signal's code and one line (``lab.render.stopped_by``), instead of scoring frames never rendered (an
+    IndexError before)."""
+    from lab.render import stopped_by
+
+    stopped_by({"interrupted": None, "frames_done": 30}, 30)  # a run that finished: nothing
+    for sig, code in (("SIGTERM", 143), ("SIGINT", 130)):
+        with pytest.raises(SystemExit) as exc:
+            stopped_by({"interrupted": sig, "frames_done": 7}, 30)
+        assert exc.value.code == code
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"stopped by {sig} after 7 of 30 NRC frames" in err[0]

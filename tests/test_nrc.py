@@ -730,9 +730,17 @@ def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
     r = make_renderer("nrc", scene, cfg, cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     tr = r.settings.training
     assert r.medium_pixels == n_medium and abs(tr.width * tr.height / (2 * n_medium) - 1) < 0.3
-    # ring_buffer: auto keeps 4 frames of records (V = records_per_path per path), at most 2^18
-    assert r.ring.capacity == 4 * tr.width * tr.height * tr.records_per_path
-    big = make_renderer("nrc", scene, compose([*base, "renderer.training.width=128", "renderer.training.height=128"]),
+    # ring_buffer: auto keeps 4 frames of the records a frame leaves (V = records_per_path per training path that
+    # sees the medium: the fraction of the pixels that do), at most 2^18
+    frac = n_medium / cam.num_pixels
+    assert 0.1 < frac < 0.9 and r.ring.capacity == round(4 * tr.width * tr.height * tr.records_per_path * frac)
+    # under a moving light or camera one frame's records (older targets are stale)
+    moving = make_renderer("nrc", scene, compose([*base, "renderer.training.width=auto", "renderer.training.height=auto",
+                                                  "renderer.training.min_paths=16", "renderer.training.paths_per_pixel=2",
+                                                  "renderer.animate.mode=sun"]),
+                           cache=StubCache(lambda x, dd: torch.zeros_like(x)))
+    assert moving.ring.capacity == round(tr.width * tr.height * tr.records_per_path * frac)
+    big = make_renderer("nrc", scene, compose([*base, "renderer.training.width=512", "renderer.training.height=512"]),
                       cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     assert big.ring.capacity == 1 << 18
     fixed = make_renderer("nrc", scene, compose([*base, "renderer.training.ring_buffer=1000"]),

@@ -102,7 +102,8 @@ def test_state_round_trip() -> None:
     records, valid = frame(gen, 16, 0.3)
     fills = [r.fill(records, valid, torch.Generator().manual_seed(9)) for r in (ring, again)]
     assert all(torch.equal(x, y) for x, y in zip(*fills))
-    with pytest.raises(ConfigError, match="capacity"):
+    with pytest.raises(ConfigError, match=r"ring_buffer holds 10 records, the checkpoint's ring 20: resume with "
+                                          r"renderer.training.ring_buffer=20"):
         RingBuffer(10).load_state_dict(ring.state_dict())
     with pytest.raises(ConfigError, match="ring_buffer.capacity"):
         RingBuffer(0)

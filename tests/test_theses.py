@@ -269,10 +269,42 @@ def test_explain_only_runs_the_ladder_of_a_saved_disagreement_without_re_measuri
     assert th.main(["--explain-only", "--quick", "--quiet", "--only", exp.id]) == 0
     assert calls and all(extra for extra in calls)  # no call without a ladder step's overrides
     res = json.loads((tmp_path / f"{exp.id}.json").read_text())
-    assert res["data"] == saved["data"] and [s["step"] for s in res["ladder"]] == [s for s, _ in exp.explain[:2]]
+    assert res["data"] == saved["data"] and [s["step"] for s in res["ladder"]] == [s for s, _ in exp.ladder()[:2]]
     calls.clear()
     th.main(["--explain-only", "--quick", "--quiet", "--only", exp.id])  # its ladder is there: nothing again
     assert not calls
+
+
+SCALE_KEYS = {"renderer.training.width", "renderer.training.height",  # the measurement's scale (Scale)
+              "renderer.inference.batch_size", "renderer.log.tensorboard"}  # speed and logging only
+
+
+def _leaves(tree, prefix=""):
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            yield from _leaves(v, f"{prefix}.{k}" if prefix else k)
+    else:
+        yield prefix, tree
+
+
+@pytest.mark.parametrize("exp", [e for e in th.EXPERIMENTS if e.explain], ids=lambda e: e.id)
+def test_a_ladder_ends_at_our_defaults(exp):
+    """Every variant with all of its ladder's steps has our defaults' cache and renderer settings, but for the
+    measurement's scale and the keys its variants set (their subject): a new default that departs from a thesis
+    needs a ladder step, or the pages explain a disagreement by settings that are no longer ours."""
+    from omegaconf import OmegaConf
+
+    from nrc.config import compose
+
+    scale = th.Scale()
+    ours = dict(_leaves(OmegaConf.to_container(compose(["renderer=nrc"]), resolve=True)))
+    steps = [o for _, ovs in exp.ladder() for o in ovs]
+    subject = {o.split("=", 1)[0].lstrip("+~") for v in exp.variants.values() for o in v}
+    for name, variant in exp.variants.items():
+        got = dict(_leaves(OmegaConf.to_container(compose(scale.overrides(exp, [*variant, *steps])), resolve=True)))
+        off = sorted(k for k in set(got) | set(ours) if k.split(".")[0] in ("cache", "renderer")
+                     and got.get(k, "<absent>") != ours.get(k, "<absent>") and k not in SCALE_KEYS | subject)
+        assert not off, f"{exp.id} {name}: the ladder ends away from our defaults at {off}"
 
 
 def test_bad_input_is_one_line():

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from typing import Any, Callable, Sequence
 
@@ -97,12 +98,25 @@ def pt_warmup(scene: Scene, cfg: DictConfig) -> None:
 def nrc_run(scene: Scene, cfg: DictConfig, spp: int, seed: int, frames: int, accumulate: bool,
             on_frame: Callable[[int, np.ndarray, np.ndarray, dict], None]) -> Any:
     """Run the NRC renderer for ``frames`` frames, calling ``on_frame(frame, image, accumulated, stats)``;
-    returns its :class:`~nrc.render.result.RenderResult`."""
+    returns its :class:`~nrc.render.result.RenderResult`. A SIGINT or SIGTERM (which the renderer takes to stop
+    after the current frame) ends the lab tool here with one line and the signal's exit code (130 / 143), instead
+    of a tool scoring frames that were never rendered."""
     with open_dict(cfg):
         cfg.frames = int(frames)
         cfg.renderer.accumulate = bool(accumulate)
         cfg.scene.integrator.spp, cfg.scene.integrator.seed = int(spp), int(seed)
-    return make_renderer("nrc", with_spp_seed(scene, spp, seed), cfg).render(progress=False, on_frame=on_frame)
+    result = make_renderer("nrc", with_spp_seed(scene, spp, seed), cfg).render(progress=False, on_frame=on_frame)
+    stopped_by(result.metrics, frames)
+    return result
+
+
+def stopped_by(metrics: dict, frames: int) -> None:
+    """Exit (130 for SIGINT, 143 for SIGTERM) with one line where an NRC run's ``metrics`` say a signal stopped it."""
+    sig = metrics.get("interrupted")
+    if sig:
+        print(f"{sys.argv[0]}: stopped by {sig} after {metrics.get('frames_done', '?')} of {frames} NRC frames; "
+              "nothing of the unfinished run is written", file=sys.stderr)
+        raise SystemExit(130 if sig == "SIGINT" else 143)
 
 
 def nrc_warmup(scene: Scene, cfg: DictConfig) -> float:

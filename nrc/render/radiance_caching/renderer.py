@@ -108,7 +108,7 @@ class NRCRenderer:
         if st.cuda_graphs and hasattr(self.cache, "use_graphs"):  # the training step's forward and backward too
             self.cache.use_graphs()
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
-        self.ring = RingBuffer(ring_size(tr), self.device)
+        self.ring = RingBuffer(ring_size(tr, self.medium_pixels / scene.camera.num_pixels, st.animate), self.device)
         self.trainer = Trainer(self.cache, self.ring, tr.records_per_path)
         self.transmittance = settings.transmittance
         self.tracer = NRCPathTracer(scene, self.transmittance, st)
@@ -466,7 +466,7 @@ class NRCRenderer:
             "training_overlap": st.training.overlap,  # the setting; frames whose steps ran beside the next trace:
             "train_beside_trace": int(sum(h.get("train_beside_trace", []))),
             "optical_depth_median": self.optical_depth,
-            "medium_pixels": self.medium_pixels,
+            "medium_pixels": self.medium_pixels, "ring_buffer": self.ring.capacity,
             "backend": self.tracer.backend, "backend_requested": st.backend, "backend_reason": self.tracer.backend_reason,
             "compiled_graphs_in_process": compiled_graphs() if self.tracer.backend == "compiled" else None,
             "cuda_graphs": self.tracer.graph_report,

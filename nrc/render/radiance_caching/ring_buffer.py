@@ -96,7 +96,8 @@ class RingBuffer:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore from :meth:`state_dict` of a buffer with the same capacity."""
         if state["capacity"] != self.capacity:
-            raise ConfigError(f"ring_buffer.capacity is {self.capacity}, the checkpoint has {state['capacity']}")
+            raise ConfigError(f"renderer.training.ring_buffer holds {self.capacity} records, the checkpoint's ring "
+                              f"{state['capacity']}: resume with renderer.training.ring_buffer={state['capacity']}")
         records = state["records"].to(self._data)
         self._data.zero_()
         self._data[:records.shape[0]] = records

@@ -30,7 +30,7 @@ class TrainingSettings:
     extra_vertices: int  # vertices a training path goes past the render path's stop
     unbiased_fraction: float | None  # probability that a training path never terminates into the cache; None: auto
     unbiased_max_vertices: int  # ... until this vertex after all (0: never; it runs to max_scatter)
-    ring_buffer: int | None  # records kept from earlier frames; None: auto (RING_FRAMES frames of records, capped)
+    ring_buffer: int | None  # records kept from earlier frames; None: auto (ring_size: RING_FRAMES frames of the records a frame leaves)
     carry_frames: int | None = None  # later frames a training path still going at its frame's end may go on in (0:
     # the frame waits for it; in the last one it ends into the cache at its next vertex); None: auto
     # (auto_training_regime)
@@ -229,8 +229,11 @@ def auto_unbiased_fraction(animate: str = "none") -> float:
     return UNBIASED_FRACTION["static" if animate == "none" else "animated"]
 
 
-RING_FRAMES = 4  # ring_buffer: auto keeps this many frames of records ...
-RING_CAP = 1 << 18  # ... and at most this many (the fixed size used before auto; 160 x 90 reaches it)
+RING_FRAMES = {"static": 4, "animated": 1}  # ring_buffer: auto keeps this many frames of the records a frame leaves,
+# by whether the camera or light moves: a moving light's old targets are stale (the turning sun, 3 seeds: 0.083 relMSE
+# + OIDN at ~12 frames' records, 0.063 at 4, 0.055 at 1.3; a static cloud's 4 frames no worse than 12, 1 frame 2 %
+# darker; docs/measurements/learning.md, "A ring buffer sized to the records a frame leaves")
+RING_CAP = 1 << 18  # ... and at most this many
 
 
 def _ring_buffer(tr: ConfigReader) -> int | None:
@@ -238,12 +241,17 @@ def _ring_buffer(tr: ConfigReader) -> int | None:
     return tr.get_int_or_auto("ring_buffer", "auto", lo=1)
 
 
-def ring_size(training: TrainingSettings) -> int:
-    """Records the ring buffer keeps: the setting, or (auto) :data:`RING_FRAMES` frames of the training image's
-    records, at most :data:`RING_CAP`."""
+def ring_size(training: TrainingSettings, medium_fraction: float = 1.0, animate: str = "none") -> int:
+    """Records the ring buffer keeps: the setting, or (auto) :data:`RING_FRAMES` frames (``animate`` ``none``:
+    static; else animated) of the records a frame leaves, at most :data:`RING_CAP`. The training image tiles the
+    whole screen and a training path whose camera ray misses the medium leaves no record, so a frame leaves about
+    ``n_paths x records_per_path x medium_fraction`` (the fraction of the pixels that see the medium; a third in
+    ``scene=thick``): sized to the training image alone, the ring held ~12 frames of records."""
     if training.ring_buffer is not None:
         return training.ring_buffer
-    return min(RING_CAP, RING_FRAMES * training.n_paths * training.records_per_path)
+    frames = RING_FRAMES["static" if animate == "none" else "animated"]
+    per_frame = training.n_paths * training.records_per_path * min(max(medium_fraction, 0.0), 1.0)
+    return max(1, min(RING_CAP, round(frames * per_frame)))
 
 
 CHECKPOINT_SECONDS = 60.0  # checkpoint_every: auto writes at least this often while rendering
