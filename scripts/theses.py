@@ -477,10 +477,16 @@ class Experiment:
     plot: bool = False  # the thesis shows a plot: ours beside it
     reuse: str | None = None  # the id whose measurement this one reads (the same runs, another question)
 
+    @property
+    def subject(self) -> set[str]:
+        """The config keys its variants set (what the experiment varies)."""
+        return {o.split("=", 1)[0].lstrip("+~") for v in self.variants.values() for o in v}
+
     def ladder(self) -> list[tuple[str, list[str]]]:
         """The ``explain`` steps without the overrides of keys a variant sets (the variants are the experiment's
-        subject: a step must not undo one, e.g. our ring buffer on S-4.2's 'no ring buffer'); empty steps dropped."""
-        subject = {o.split("=", 1)[0].lstrip("+~") for v in self.variants.values() for o in v}
+        :attr:`subject`: a step must not undo one, e.g. our ring buffer on S-4.2's 'no ring buffer'); empty steps
+        dropped."""
+        subject = self.subject
         steps = [(name, [o for o in ovs if o.split("=", 1)[0] not in subject]) for name, ovs in self.explain]
         return [(name, ovs) for name, ovs in steps if ovs]
 

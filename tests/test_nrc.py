@@ -725,8 +725,9 @@ def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
     n_box = int((t1 > t0).sum())
     n_medium = medium_pixels(cam, scene.grid)
     assert n_box > 100 and abs(n_medium / n_box - 0.5) < 0.1
-    cfg = compose([*base, "renderer.training.width=auto", "renderer.training.height=auto",
-                   "renderer.training.min_paths=16", "renderer.training.paths_per_pixel=2"])
+    budget = [*base, "renderer.training.width=auto", "renderer.training.height=auto", "renderer.training.min_paths=16",
+              "renderer.training.paths_per_pixel=2"]
+    cfg = compose(budget)
     r = make_renderer("nrc", scene, cfg, cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     tr = r.settings.training
     assert r.medium_pixels == n_medium and abs(tr.width * tr.height / (2 * n_medium) - 1) < 0.3
@@ -735,9 +736,7 @@ def test_auto_training_budget_counts_only_pixels_that_see_density(tmp_path):
     frac = n_medium / cam.num_pixels
     assert 0.1 < frac < 0.9 and r.ring.capacity == round(4 * tr.width * tr.height * tr.records_per_path * frac)
     # under a moving light or camera one frame's records (older targets are stale)
-    moving = make_renderer("nrc", scene, compose([*base, "renderer.training.width=auto", "renderer.training.height=auto",
-                                                  "renderer.training.min_paths=16", "renderer.training.paths_per_pixel=2",
-                                                  "renderer.animate.mode=sun"]),
+    moving = make_renderer("nrc", scene, compose([*budget, "renderer.animate.mode=sun"]),
                            cache=StubCache(lambda x, dd: torch.zeros_like(x)))
     assert moving.ring.capacity == round(tr.width * tr.height * tr.records_per_path * frac)
     big = make_renderer("nrc", scene, compose([*base, "renderer.training.width=512", "renderer.training.height=512"]),

@@ -299,11 +299,10 @@ def test_a_ladder_ends_at_our_defaults(exp):
     scale = th.Scale()
     ours = dict(_leaves(OmegaConf.to_container(compose(["renderer=nrc"]), resolve=True)))
     steps = [o for _, ovs in exp.ladder() for o in ovs]
-    subject = {o.split("=", 1)[0].lstrip("+~") for v in exp.variants.values() for o in v}
     for name, variant in exp.variants.items():
         got = dict(_leaves(OmegaConf.to_container(compose(scale.overrides(exp, [*variant, *steps])), resolve=True)))
         off = sorted(k for k in set(got) | set(ours) if k.split(".")[0] in ("cache", "renderer")
-                     and got.get(k, "<absent>") != ours.get(k, "<absent>") and k not in SCALE_KEYS | subject)
+                     and got.get(k, "<absent>") != ours.get(k, "<absent>") and k not in SCALE_KEYS | exp.subject)
         assert not off, f"{exp.id} {name}: the ladder ends away from our defaults at {off}"
 
 

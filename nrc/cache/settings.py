@@ -35,11 +35,6 @@ LR_FINAL_FRACTION = {"static": 0.2, "animated": 1.0}  # optimizer.lr_final_fract
 # light's keeps the full rate to follow it (docs/measurements/learning.md, "A decaying learning rate")
 
 
-def _or(value: float | None, auto: float) -> float:
-    """``value``, or ``auto`` where the key said ``auto`` (``None``)."""
-    return auto if value is None else value
-
-
 @dataclass(frozen=True)
 class CacheSettings:
     """Validated contents of the ``cache`` config block (see the module docstring for units and ranges)."""
@@ -75,6 +70,7 @@ class CacheSettings:
         opt = cfg.block("optimizer")
         ema = cfg.block("ema")
         loss = cfg.block("loss")
+        lr_final = opt.get_float_or_auto("lr_final_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0)
         settings = cls(
             n_neurons=net.get_int("n_neurons", lo=16, hi=1024),
             n_hidden_layers=net.get_int("n_hidden_layers", lo=1, hi=16),
@@ -84,8 +80,8 @@ class CacheSettings:
                 eps=opt.get_float("eps", lo=0.0),
                 weight_decay=opt.get_float("weight_decay", 0.0, lo=0.0),
             ),
-            lr_final_fraction=_or(opt.get_float_or_auto("lr_final_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0),
-                                  LR_FINAL_FRACTION["animated" if animated else "static"]),
+            lr_final_fraction=(LR_FINAL_FRACTION["animated" if animated else "static"] if lr_final is None
+                               else lr_final),
             lr_half_life=opt.get_float("lr_half_life", 20.0, lo=0.0, lo_open=True),
             betas=(opt.get_float("beta1", 0.9, lo=0.0, hi=1.0, hi_open=True),
                    opt.get_float("beta2", 0.99, lo=0.0, hi=1.0, hi_open=True)),

@@ -226,7 +226,13 @@ def auto_unbiased_fraction(animate: str = "none") -> float:
     docs/measurements/learning.md, "A loss for unbiased targets"), and under a moving light, where a quarter with
     that loss left the turning sun 7 % dark and all of them were more accurate ("A decaying learning rate"). It does
     not depend on the scene's optical depth."""
-    return UNBIASED_FRACTION["static" if animate == "none" else "animated"]
+    return UNBIASED_FRACTION[_motion(animate)]
+
+
+def _motion(animate: str) -> str:
+    """The key of the ``auto`` tables (:data:`UNBIASED_FRACTION`, :data:`RING_FRAMES`): ``static`` where
+    ``animate`` is ``none``, else ``animated``."""
+    return "static" if animate == "none" else "animated"
 
 
 RING_FRAMES = {"static": 4, "animated": 1}  # ring_buffer: auto keeps this many frames of the records a frame leaves,
@@ -249,7 +255,7 @@ def ring_size(training: TrainingSettings, medium_fraction: float = 1.0, animate:
     ``scene=thick``): sized to the training image alone, the ring held ~12 frames of records."""
     if training.ring_buffer is not None:
         return training.ring_buffer
-    frames = RING_FRAMES["static" if animate == "none" else "animated"]
+    frames = RING_FRAMES[_motion(animate)]
     per_frame = training.n_paths * training.records_per_path * min(max(medium_fraction, 0.0), 1.0)
     return max(1, min(RING_CAP, round(frames * per_frame)))
 
