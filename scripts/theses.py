@@ -108,6 +108,8 @@ LADDER_OURS: list[tuple[str, list[str]]] = [
     ("our encoding (hash grid: 8 levels to the grid's resolution, table auto, OB16)",
      ["encoding=hashgrid_oneblob", "encoding.position.n_levels=8", "encoding.position.log2_hashmap_size=auto",
       "encoding.direction.n_bins=16"]),
+    ("our light-depth input (the optical depth towards the key light, one-blob encoded) (ours)",
+     ["extra_inputs=light_depth"]),
 ]
 
 

@@ -80,12 +80,17 @@ def test_every_encoding_and_extras_file_builds_and_runs(encoding, extras):
     cfg = _compose(encoding, extras)
     if cfg.encoding.position.otype == "HashGrid":  # keep the test light: small tables
         cfg = _compose(encoding, extras, ("encoding.position.log2_hashmap_size=10", "encoding.position.n_levels=4"))
+    from nrc.transport.lights import DirectionalLight
+
     grid = _grid()
-    cache = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, grid, "cpu", 0)
+    sun = DirectionalLight(torch.tensor([0.0, -1.0, 0.0]), torch.ones(3))
+    cache = build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, grid, "cpu", 0, lights=(sun,))
     x = grid.box.lo + grid.box.extent * torch.rand(16, 3)
     d = torch.nn.functional.normalize(torch.randn(16, 3), dim=1)
-    n_extra = {"none": 0, "density": 1, "gradient": 3, "laplacian": 1, "density_gradient": 4, "all": 5}[extras]
+    n_extra = {"none": 0, "density": 1, "gradient": 3, "laplacian": 1, "density_gradient": 4, "all": 5,
+               "light_depth": 0}[extras]
     assert cache.inputs.extras.n_dims == n_extra
+    assert (cache.inputs.light_field is not None) == (extras == "light_depth")
     assert torch.isfinite(torch.tensor(cache.train_step(x, d, torch.ones(16, 3))))
     assert cache.query(x, d).shape == (16, 3)
 

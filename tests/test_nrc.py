@@ -951,3 +951,25 @@ def test_the_renderer_takes_its_settings_read_once_with_the_auto_rules_resolved(
     np.testing.assert_array_equal(a.image, b.image)
     assert a.metrics["loss_per_frame"] == b.metrics["loss_per_frame"]
     assert a.metrics["unbiased_fraction"] == tr.unbiased_fraction
+
+
+def test_light_depth_input_follows_the_turning_sun():
+    """Under animate=sun the cache's light-depth field is recomputed for each frame's sun (before the frame's
+    queries), and left alone under a static light."""
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun_front", "renderer.animate.mode=sun",
+                   "renderer.animate.degrees_per_frame=90", "extra_inputs=light_depth"])
+    r = make_renderer("nrc", load_scene(cfg.scene), cfg)
+    field = r.cache.inputs.light_field
+    assert field is not None
+    r.render_frame(0)
+    before = field._data.clone()
+    r.render_frame(1)
+    (sun,) = r.frame_lights(1).lights
+    assert r.cache.inputs._key == (1.0, *(float(v) for v in sun.direction))
+    assert not torch.equal(before, field._data)
+    static = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene=sun_front", "extra_inputs=light_depth"])
+    static = make_renderer("nrc", load_scene(static.scene), static)
+    assert static.cache.inputs.light_field is not None
+    kept = static.cache.inputs.light_field._data.clone()
+    static.render_frame(0), static.render_frame(1)
+    assert torch.equal(kept, static.cache.inputs.light_field._data)

@@ -66,3 +66,22 @@ def test_empty_medium():
     grid = _grid(torch.zeros((4, 4, 4)))
     od = scene_optical_depth(types.SimpleNamespace(camera=_camera([0, 0, 20], [0, 0, 0], 3, 2), grid=grid, g=0.0))
     assert (od.median, od.medium_pixels, od.pixels) == (0.0, 0, 6)
+
+
+def test_light_field_of_a_constant_medium_is_sigma_times_the_distance_to_the_light():
+    from nrc.volume.optical_depth import axis_chord_depth, light_optical_depth_field
+
+    grid = _grid(torch.ones((8, 4, 6)), scale=0.5)  # voxel edge 1, box [-4, 4] x [-2, 2] x [-3, 3]
+    # a sun shining along -x: every cell looks towards +x, to the face at x = 4 (field cells 1 voxel: exact)
+    tau = light_optical_depth_field(grid, direction=torch.tensor([-2.0, 0.0, 0.0]), resolution=8,
+                                    steps_per_voxel=1.0)
+    assert tau.shape == (8, 4, 6)
+    expected = 0.5 * (4.0 - (torch.arange(8) + 0.5 - 4.0))
+    torch.testing.assert_close(tau[:, 1, 2], expected, rtol=1e-4, atol=1e-5)
+    # a point light inside the box: the depth to the light, not to the box's exit
+    tau = light_optical_depth_field(grid, position=torch.tensor([0.5, 0.5, 0.5]), resolution=8, steps_per_voxel=2.0)
+    assert float(tau[4, 2, 3]) == pytest.approx(0.0, abs=1e-6)  # the light's own cell
+    assert float(tau[0, 2, 3]) == pytest.approx(0.5 * 4.0, rel=1e-3)  # the cell at x = -3.5: 4 units away
+    assert axis_chord_depth(grid) == pytest.approx(0.5 * 8.0)
+    with pytest.raises(ValueError, match="exactly one"):
+        light_optical_depth_field(grid)

@@ -19,6 +19,7 @@ stores whatever direction the training targets used), radiance linear RGB float3
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -32,11 +33,13 @@ from nrc.cache.encodings.composite import CompositeEncoding
 from nrc.cache.encodings.factory import build_encoding
 from nrc.cache.encodings.hashgrid import HashGridEncoding
 from nrc.cache.encodings.identity import IdentityEncoding
+from nrc.cache.encodings.oneblob import OneBlobEncoding
 from nrc.cache.inputs import ExtraInputs, InputBuilder
 from nrc.cache.loss import relative_l2_luminance
 from nrc.cache.network import CacheNetwork
 from nrc.cache.optim import build_adam
 from nrc.cache.settings import CacheSettings
+from nrc.transport.lights import Light
 from nrc.volume.grid import DensityGrid
 
 DIRECTION_OTYPES = ("Identity", "Frequency", "TriangleWave", "OneBlob")
@@ -245,7 +248,7 @@ class RadianceCache:
 
 def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: Any, grid: DensityGrid,
                          device: torch.device | str, seed: int, training_paths: int | None = None,
-                         thick: bool = True, animated: bool = False) -> RadianceCache:
+                         thick: bool = True, animated: bool = False, lights: Sequence[Light] = ()) -> RadianceCache:
     """Build a :class:`RadianceCache` from the ``cache``, ``encoding`` and ``extra_inputs`` config blocks.
 
     Args:
@@ -259,7 +262,9 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
             ``log2_hashmap_size: auto`` (:func:`nrc.cache.encodings.factory.auto_log2_hashmap_size`); None for a
             cache built on its own (``auto`` is then an error).
         thick: whether the medium is thick (the renderer's ``auto`` regime), for the same.
-        animated: whether the renderer's camera or light moves, for ``optimizer.lr_final_fraction: auto``.
+        animated: whether the renderer's camera or light moves, for ``optimizer.lr_final_fraction: auto`` and
+            ``extra_inputs.light_depth_resolution: auto``.
+        lights: the scene's lights, for ``extra_inputs.light_depth`` (none: no light-depth column).
 
     On CPU this also calls :func:`nrc.cache.allocator.retain_freed_memory` (process-wide glibc malloc
     tuning; without it large temporaries are page-faulted anew on every step).
@@ -275,7 +280,7 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
     pos_cfg, dir_cfg = enc_cfg.block("position"), enc_cfg.block("direction")
     enc_cfg.finish()
     direction_mode = "spherical" if dir_cfg.get_choice("otype", DIRECTION_OTYPES) == "OneBlob" else "vector"
-    inputs = InputBuilder(grid, direction_mode, extras)
+    inputs = InputBuilder(grid, direction_mode, extras, lights, animated)
     (pos_dims, pos_periodic), (dir_dims, dir_periodic) = inputs.column_blocks[:2]
     generator = torch.Generator().manual_seed(int(seed))
     pos_enc, pos_adam = build_encoding(pos_cfg, pos_dims, pos_periodic, generator,
@@ -285,6 +290,9 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
     parts = [(pos_enc, pos_dims), (dir_enc, dir_dims)]
     if extras.n_dims:
         parts.append((IdentityEncoding(extras.n_dims), extras.n_dims))
+    if inputs.light_field is not None:  # the light depth: one column, one-blob encoded unless bins 0
+        bins = extras.light_depth_bins
+        parts.append((OneBlobEncoding(1, bins, (False,)) if bins else IdentityEncoding(1), 1))
     network = CacheNetwork(CompositeEncoding(parts), settings.n_neurons, settings.n_hidden_layers, settings.bf16,
                            generator=generator).to(device)
     groups = [(network.mlp, settings.mlp_adam)]

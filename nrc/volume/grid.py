@@ -43,6 +43,11 @@ class CellField:
         # grid_sample wants (1, C, D, H, W) with grid coordinates (x -> W, y -> H, z -> D).
         self._data = v.permute(3, 2, 1, 0)[None].contiguous()
 
+    def assign(self, values: Tensor) -> None:
+        """Replace the values in place (same shape as at construction)."""
+        v = values if self.channels else values[..., None]
+        self._data.copy_(v.permute(3, 2, 1, 0)[None])
+
     def __call__(self, s: Tensor) -> Tensor:
         """Sample at box coordinates ``s`` ``(N, 3)`` in ``[0, 1]^3``; returns ``(N,)`` or ``(N, C)``."""
         inside = ((s >= 0) & (s <= 1)).all(dim=-1)

@@ -104,7 +104,8 @@ class NRCRenderer:
         groups = settings.cache
         self.cache = cache if cache is not None else build_radiance_cache(
             groups.cache, groups.encoding, groups.extra_inputs, scene.grid, self.device, scene.integrator.seed,
-            training_paths=tr.n_paths, thick=settings.regime == "thick", animated=st.animate != "none")
+            training_paths=tr.n_paths, thick=settings.regime == "thick", animated=st.animate != "none",
+            lights=scene.lights)
         if st.cuda_graphs and hasattr(self.cache, "use_graphs"):  # the training step's forward and backward too
             self.cache.use_graphs()
         self.train_order = self.batch_filter.order(tr.height, tr.width, self.device)
@@ -168,6 +169,8 @@ class NRCRenderer:
             trace.acc.index_add_(0, pix, contribution)
         t1 = time.perf_counter()
         trainer.join()  # the previous frame's training (overlap), before the cache is read
+        if st.animate == "sun" and hasattr(self.cache, "inputs"):  # the light-depth input follows the turning sun
+            self.cache.inputs.set_lights(lights.lights)
         t1j = time.perf_counter()
 
         # Training paths' terminal queries read the raw weights (training.query_weights=raw; a cache without
