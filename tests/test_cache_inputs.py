@@ -109,7 +109,7 @@ def test_light_depth_column_grows_away_from_the_light_and_follows_it():
     sky = EnvironmentLight(torch.ones(3), None)
     sun = _sun([-1.0, 0.0, 0.0])  # shines along -x: the +x side is lit
     dim_point = PointLight(torch.tensor([0.0, 5.0, 0.0]), torch.ones(3))
-    assert key_light((sky, dim_point, sun), grid.box.center) is sun
+    assert key_light((sky, dim_point, sun), grid.box) is sun
     builder = InputBuilder(grid, "spherical", extras, (sky, sun))
     assert builder.n_dims == 6 and builder.column_blocks[-1] == (1, (False,))
     x = torch.tensor([[0.4, 0.0, 0.0], [0.0, 0.0, 0.0], [-0.4, 0.0, 0.0]])

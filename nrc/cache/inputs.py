@@ -12,11 +12,11 @@ For a world position ``x`` and a unit direction ``d`` the raw input row is the c
    (``[0, 1]``, 1 column), its normalised gradient (``[-1, 1]^3``, 3 columns) and its normalised
    Laplacian (``[-1, 1]``, 1 column), in that order; all zero outside the box;
 4. with ``light_depth``, the optical depth ``tau`` from ``x`` towards the scene's key light (:func:`key_light`: the
-   brightest directional or point light), as ``log(1 + tau) / log(1 + tau_ref)`` clamped to ``[0, 1]`` (1 column;
-   ``tau_ref``: :func:`nrc.volume.optical_depth.axis_chord_depth`, a constant of the medium), read trilinearly
-   from a coarse field (:func:`nrc.volume.optical_depth.light_optical_depth_field`, ``light_depth_resolution``
-   cells along the longest axis) computed when the cache is built and again whenever the key light moves
-   (:meth:`InputBuilder.set_lights`). It tells the cache where the medium shadows its light, which the hash grid
+   directional or point light that sends the most power into the medium), as ``log(1 + tau) / log(1 + tau_ref)``
+   clamped to ``[0, 1]`` (1 column; ``tau_ref``: :func:`nrc.volume.optical_depth.axis_chord_depth`, a constant of
+   the medium), read trilinearly from a coarse field (:func:`nrc.volume.optical_depth.light_optical_depth_field`,
+   ``light_depth_resolution`` cells along the longest axis) computed when the cache is built and again whenever
+   the key light moves (:meth:`InputBuilder.set_lights`). It tells the cache where the medium shadows its light, which the hash grid
    otherwise learns from scratch (``docs/measurements/learning.md``, "The optical depth to the light as an input").
 
 The same :class:`InputBuilder` serves :meth:`RadianceCache.train_step` and :meth:`RadianceCache.query`,
@@ -34,7 +34,9 @@ import torch
 from torch import Tensor
 
 from nrc.config import ConfigReader
-from nrc.transport.lights import DirectionalLight, Light, PointLight, luminance3
+from nrc.transport.light_sampling import light_powers
+from nrc.transport.lights import DirectionalLight, Light, PointLight
+from nrc.volume.box import Box
 from nrc.volume.grid import CellField, DensityGrid
 from nrc.volume.optical_depth import axis_chord_depth, light_optical_depth_field
 
@@ -95,21 +97,16 @@ def light_depth_cells(extras: ExtraInputs, animated: bool) -> int:
     return LIGHT_DEPTH_CELLS["animated" if animated else "static"]
 
 
-def key_light(lights: Sequence[Light], center: Tensor) -> DirectionalLight | PointLight | None:
-    """The brightest directional or point light (luminance of a directional light's irradiance, of a point light's
-    intensity over its squared distance to ``center``, the medium box's centre; the first of equals), or None."""
-    best, best_e = None, -1.0
-    for light in lights:
-        if isinstance(light, DirectionalLight):
-            e = float(luminance3(light.irradiance))
-        elif isinstance(light, PointLight):
-            r2 = float((light.position.to(center.device) - center).square().sum())
-            e = float(luminance3(light.intensity)) / max(r2, 1e-12)
-        else:
-            continue
-        if e > best_e:
-            best, best_e = light, e
-    return best
+def key_light(lights: Sequence[Light], box: Box) -> DirectionalLight | PointLight | None:
+    """The directional or point light that sends the most power into the medium's bounding sphere (the light
+    sampler's :func:`~nrc.transport.light_sampling.light_powers`; the first of equals, directional lights first), or
+    None."""
+    deltas = tuple([lt for lt in lights if isinstance(lt, DirectionalLight)]
+                   + [lt for lt in lights if isinstance(lt, PointLight)])
+    if not deltas:
+        return None
+    powers = light_powers(deltas, box.center, float(torch.linalg.vector_norm(box.extent)) / 2)
+    return deltas[max(range(len(deltas)), key=powers.__getitem__)]
 
 
 def spherical_coordinates(d: Tensor) -> Tensor:
@@ -150,7 +147,7 @@ class InputBuilder:
             blocks.append((extras.n_dims, (False,) * extras.n_dims))
         self.light_field: CellField | None = None
         self._key: tuple[float, ...] | None = None
-        self._light_column = extras.light_depth and key_light(lights, grid.box.center) is not None
+        self._light_column = extras.light_depth and key_light(lights, grid.box) is not None
         self._cells = light_depth_cells(extras, animated)
         if self._light_column:
             self._log_ref = math.log1p(max(axis_chord_depth(grid), 1e-6))
@@ -164,15 +161,16 @@ class InputBuilder:
         The field's tensor is updated in place (a captured graph that reads it stays valid)."""
         if not self._light_column:
             return False
-        light = key_light(lights, self.grid.box.center)
+        light = key_light(lights, self.grid.box)
         if light is None:
             return False
-        vec = light.direction if isinstance(light, DirectionalLight) else light.position
-        key = (float(isinstance(light, DirectionalLight)), *(float(v) for v in vec))
+        directional = isinstance(light, DirectionalLight)
+        vec = light.direction if directional else light.position
+        key = (float(directional), *(float(v) for v in vec))
         if key == self._key:
             return False
-        kw = {"direction": vec} if isinstance(light, DirectionalLight) else {"position": vec}
-        tau = light_optical_depth_field(self.grid, resolution=self._cells, **kw)
+        tau = light_optical_depth_field(self.grid, resolution=self._cells,
+                                        **{"direction" if directional else "position": vec})
         value = (torch.log1p(tau) / self._log_ref).clamp(0.0, 1.0)
         if self.light_field is None:
             self.light_field = CellField(value)

@@ -39,14 +39,16 @@ class CellField:
 
     def __init__(self, values: Tensor) -> None:
         self.channels = values.shape[3] if values.dim() == 4 else 0
+        self._data = self._layout(values).contiguous()
+
+    def _layout(self, values: Tensor) -> Tensor:
+        """``values`` as grid_sample wants them: ``(1, C, D, H, W)`` with grid coordinates (x -> W, y -> H, z -> D)."""
         v = values if self.channels else values[..., None]
-        # grid_sample wants (1, C, D, H, W) with grid coordinates (x -> W, y -> H, z -> D).
-        self._data = v.permute(3, 2, 1, 0)[None].contiguous()
+        return v.permute(3, 2, 1, 0)[None]
 
     def assign(self, values: Tensor) -> None:
         """Replace the values in place (same shape as at construction)."""
-        v = values if self.channels else values[..., None]
-        self._data.copy_(v.permute(3, 2, 1, 0)[None])
+        self._data.copy_(self._layout(values))
 
     def __call__(self, s: Tensor) -> Tensor:
         """Sample at box coordinates ``s`` ``(N, 3)`` in ``[0, 1]^3``; returns ``(N,)`` or ``(N, C)``."""

@@ -60,15 +60,21 @@ def camera_optical_depths(camera: Any, grid: Any, steps_per_voxel: float = 2.0, 
         if not bool(ahead.any()):
             continue
         pix, o, d, t0, t1 = pix[ahead], o[ahead], d[ahead], t0[ahead], t1[ahead]
-        length = t1 - t0
-        steps = max(1, math.ceil(float(length.max()) / dt_max))
-        dt = length / steps  # each ray's own step: exactly `steps` midpoints over its chord
-        tau = torch.zeros_like(length)
-        for i in range(steps):
-            x = o + (t0 + (i + 0.5) * dt)[:, None] * d
-            tau += grid.sigma_t(x) * dt
-        out[pix] = tau
+        out[pix] = _midpoint_depth(grid, o, d, t0, t1, dt_max)
     return out
+
+
+def _midpoint_depth(grid: Any, o: Tensor, d: Tensor, t0: Tensor, t1: Tensor, dt_max: float) -> Tensor:
+    """``(N,)`` optical depth of the segments ``o + t d``, ``t`` in ``[t0, t1]``, by the midpoint rule: every segment
+    gets the same number of midpoints (the longest's ``length / dt_max``, rounded up), each its own step."""
+    length = t1 - t0
+    steps = max(1, math.ceil(float(length.max()) / dt_max))
+    dt = length / steps  # each ray's own step: exactly `steps` midpoints over its chord
+    tau = torch.zeros_like(length)
+    for i in range(steps):
+        x = o + (t0 + (i + 0.5) * dt)[:, None] * d
+        tau += grid.sigma_t(x) * dt
+    return tau
 
 
 @dataclass(frozen=True)
@@ -139,17 +145,11 @@ def light_optical_depth_field(grid: Any, direction: Tensor | None = None, positi
         xo = x[a:a + chunk]
         if direction is not None:
             d = (-direction / direction.norm()).to(dev, torch.float32).expand_as(xo)
-            _, t1 = grid.box.intersect(xo, d)
         else:
             to = position.to(dev, torch.float32) - xo
-            dist = to.norm(dim=-1)
-            d = to / dist.clamp_min(1e-12)[:, None]
-            _, t1 = grid.box.intersect(xo, d)
-            t1 = torch.minimum(t1, dist)
-        steps = max(1, math.ceil(float(t1.max()) / dt_max))
-        dt = t1 / steps
-        tau = torch.zeros_like(t1)
-        for i in range(steps):
-            tau += grid.sigma_t(xo + ((i + 0.5) * dt)[:, None] * d) * dt
-        out[a:a + chunk] = tau
+            d = to / to.norm(dim=-1).clamp_min(1e-12)[:, None]
+        _, t1 = grid.box.intersect(xo, d)
+        if position is not None:  # up to the light, if it is inside the box
+            t1 = torch.minimum(t1, to.norm(dim=-1))
+        out[a:a + chunk] = _midpoint_depth(grid, xo, d, torch.zeros_like(t1), t1, dt_max)
     return out.reshape(shape)

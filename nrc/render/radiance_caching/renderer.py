@@ -169,7 +169,7 @@ class NRCRenderer:
             trace.acc.index_add_(0, pix, contribution)
         t1 = time.perf_counter()
         trainer.join()  # the previous frame's training (overlap), before the cache is read
-        if st.animate == "sun" and hasattr(self.cache, "inputs"):  # the light-depth input follows the turning sun
+        if hasattr(self.cache, "inputs"):  # the light-depth input follows the frame's lights (unchanged: nothing done)
             self.cache.inputs.set_lights(lights.lights)
         t1j = time.perf_counter()
 
