@@ -16,8 +16,9 @@ For a world position ``x`` and a unit direction ``d`` the raw input row is the c
    clamped to ``[0, 1]`` (1 column; ``tau_ref``: :func:`nrc.volume.optical_depth.axis_chord_depth`, a constant of
    the medium), read trilinearly from a coarse field (:func:`nrc.volume.optical_depth.light_optical_depth_field`,
    ``light_depth_resolution`` cells along the longest axis) computed when the cache is built and again whenever
-   the key light moves (:meth:`InputBuilder.set_lights`). It tells the cache where the medium shadows its light, which the hash grid
-   otherwise learns from scratch (``docs/measurements/learning.md``, "The optical depth to the light as an input").
+   the key light moves (:meth:`InputBuilder.set_lights`). It tells the cache where the medium shadows its light,
+   which the hash grid otherwise learns from scratch (``docs/measurements/learning.md``, "The optical depth to the
+   light as an input").
 
 The same :class:`InputBuilder` serves :meth:`RadianceCache.train_step` and :meth:`RadianceCache.query`,
 so the extras can never differ between training and inference.
