@@ -316,8 +316,13 @@ def comparison_markdown(results: list[dict], frames: tuple[int, ...] = (5, 10, 2
 
 
 def write_comparison(root: Path) -> Path:
-    """``root/comparison.md`` over every variant in ``root`` (each ``root/<variant>/<point>/curve.json``)."""
-    results = [json.loads(p.read_text()) for p in root.glob("*/*/curve.json")]
+    """``root/comparison.md`` over every variant in ``root`` (each ``root/<variant>/<point>/curve.json``), each named
+    by its folder (a folder renamed to keep an earlier default beside the new one keeps the label it ran under)."""
+    results = []
+    for p in root.glob("*/*/curve.json"):
+        res = json.loads(p.read_text())
+        res["settings"]["label"] = p.parent.parent.name
+        results.append(res)
     (root / "comparison.md").write_text(comparison_markdown(results))
     return root / "comparison.md"
 

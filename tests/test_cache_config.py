@@ -134,6 +134,8 @@ ONEBLOB = {"otype": "OneBlob", "n_bins": 4}
          "cache.loss.relative_clamp must be >= 0"),
         ({**CACHE, "loss": {"target_clamp": 1.0, "clamp_to": "median"}}, {"position": HASH, "direction": ONEBLOB}, {},
          "cache.loss.clamp_to"),
+        ({**CACHE, "loss": {"target_clamp": 1.0, "clamp_excess": "keep"}}, {"position": HASH, "direction": ONEBLOB}, {},
+         "cache.loss.clamp_excess"),
         ({**CACHE, "optimizer": {"lr": 1e-2}}, {"position": HASH, "direction": ONEBLOB}, {},
          "cache.optimizer.eps is required"),
         ({**CACHE, "optimizer": {**CACHE["optimizer"], "lr_final_fraction": 0.0}}, {"position": HASH, "direction": ONEBLOB},

@@ -96,19 +96,20 @@ def test_the_curve_rows_table_json_and_summary(lc, tmp_path):
 def test_the_summary_follows_the_points_order_and_the_comparison_puts_variants_side_by_side(lc, tmp_path):
     """Points in the crossover map's order (thin to thick), not by name; one comparison row per point and
     variant, the default first, each variant's ratios read off its own curve."""
-    for label, scale in (("default", 1.0), ("faster", 0.5)):
+    for label, scale, folder in (("default", 1.0, "default"), ("faster", 0.5, "faster"),
+                                 ("default", 1.0, "renamed")):  # an earlier default kept under another folder
         for point in ("d10", "d0.6", "d5"):
             res = fake_result(lc, point)
             res["settings"] = {**res["settings"], "label": label, "nrc_overrides": [] if label == "default" else ["x=1"]}
             for r in res["curve"]:
                 r["ratio_oidn"] *= scale
                 r["rel_mse_oidn"] *= scale
-            lc.write_point(res, tmp_path / label / point)
+            lc.write_point(res, tmp_path / folder / point)
     summary = lc.write_summary(tmp_path / "default").read_text()
     assert summary.index("| d0.6 ") < summary.index("| d5 ") < summary.index("| d10 ")
     rows = [line for line in lc.write_comparison(tmp_path).read_text().splitlines() if line.startswith("| d")]
     assert [(r.split("|")[1].strip(), r.split("|")[2].strip()) for r in rows] == [
-        (p, v) for p in ("d0.6", "d5", "d10") for v in ("default", "faster")]
+        (p, v) for p in ("d0.6", "d5", "d10") for v in ("default", "faster", "renamed")]
     default, faster = rows[0].split("|"), rows[1].split("|")
     assert faster[3].strip() == "x=1" and default[3].strip() == "–"
     def cell(row):  # "relMSE (ratio)" @10

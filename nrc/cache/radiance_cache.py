@@ -44,6 +44,8 @@ from nrc.volume.grid import DensityGrid
 
 DIRECTION_OTYPES = ("Identity", "Frequency", "TriangleWave", "OneBlob")
 MAX_TRAINING_GRAPHS = 4  # training batch sizes with a CUDA graph (RadianceCache.use_graphs); other sizes run eagerly
+CLAMP_CELLS = 4  # cache.loss.clamp_excess=local: the box cut into CLAMP_CELLS^3 cells, the clamped luminance given back
+# within each
 
 
 class _Forward(torch.nn.Module):
@@ -130,9 +132,14 @@ class RadianceCache:
 
     def _loss(self, raw: Tensor, targets: Tensor, net: Any = None) -> Tensor:
         """The loss of one training batch through ``net`` (default: the network)."""
+        cells = None
+        if self.settings.loss_clamp_excess == "local":  # the box's CLAMP_CELLS^3 cells (raw[:, :3]: the position in it)
+            ijk = (raw[:, :3] * CLAMP_CELLS).long().clamp(0, CLAMP_CELLS - 1)
+            cells = ijk[:, 0] + CLAMP_CELLS * (ijk[:, 1] + CLAMP_CELLS * ijk[:, 2])
         return relative_l2_luminance((self.network if net is None else net)(raw), targets, self.settings.target_clamp,
                                      self.settings.loss_scale_floor, self.settings.loss_relative_clamp,
-                                     self.settings.loss_clamp_to)
+                                     self.settings.loss_clamp_to, self.settings.loss_clamp_excess, cells,
+                                     CLAMP_CELLS ** 3)
 
     def _training_loss(self, raw: Tensor, targets: Tensor) -> Tensor:
         """The loss of one training batch, through ``torch.compile`` when asked (its backward is compiled with it:

@@ -15,7 +15,8 @@ Keys (all validated; unknown keys are errors):
   the relative loss's denominator gains ``(f x the batch's mean target luminance)^2`` (0: Müller et al.'s
   ``Y(p)^2 + 0.01``; :func:`nrc.cache.loss.relative_l2_luminance`); ``relative_clamp`` (>= 0, 0: off): a target
   of luminance above ``k x`` the larger of the cache's prediction and the batch's mean is scaled down to it
-  (``clamp_to: prediction``; ``mean``: k x the batch's mean alone).
+  (``clamp_to: prediction``; ``mean``: k x the batch's mean alone); ``clamp_excess``: ``drop`` the luminance the
+  clamp removes, or ``spread`` it over the batch's targets (the batch's summed target luminance kept).
 * ``query_chunk``: points per forward pass in :meth:`RadianceCache.query` (bounds memory).
 * ``compile_training``: ``torch.compile`` the training step's forward, loss and backward (dynamic batch size;
   the fused Adam step is already one kernel). Off by default: on the CPU it measured no faster than eager
@@ -51,6 +52,7 @@ class CacheSettings:
     loss_scale_floor: float = 0.0
     loss_relative_clamp: float = 0.0
     loss_clamp_to: str = "prediction"
+    loss_clamp_excess: str = "drop"
     compile_training: bool = False
     lr_final_fraction: float = 1.0
     lr_half_life: float = 20.0
@@ -91,6 +93,7 @@ class CacheSettings:
             loss_scale_floor=loss.get_float("scale_floor", 0.0, lo=0.0),
             loss_relative_clamp=loss.get_float("relative_clamp", 0.0, lo=0.0),
             loss_clamp_to=loss.get_choice("clamp_to", ["prediction", "mean"], "prediction"),
+            loss_clamp_excess=loss.get_choice("clamp_excess", ["drop", "spread", "local"], "drop"),
             query_chunk=cfg.get_int("query_chunk", 1 << 16, lo=1),
             compile_training=cfg.get_bool("compile_training", False),
         )
