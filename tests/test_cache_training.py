@@ -124,42 +124,6 @@ def test_loss_clamp_excess_spread_gives_the_clamped_luminance_back_to_the_batch(
         relative_l2_luminance(p[:3], t[:3], 100.0).item(), rel=1e-7)
 
 
-def test_loss_clamp_excess_local_gives_it_back_within_the_samples_cell():
-    p = torch.zeros(6, 3)
-    t = torch.tensor([[1.0] * 3, [30.0] * 3, [1.0] * 3, [1.0] * 3, [1.0] * 3, [1.0] * 3])  # luminances 1, 30, 1, 1, 1, 1
-    cells = torch.tensor([0, 0, 0, 1, 1, 1])
-    cap = 2.0 * 35.0 / 6.0  # the prediction is 0: k x the batch's mean
-    gain = 1.0 + (30.0 - cap) / (2.0 + cap)  # cell 0's removed over its kept luminance
-    want = torch.tensor([[gain] * 3, [gain * cap] * 3, [gain] * 3, [1.0] * 3, [1.0] * 3, [1.0] * 3])
-    got = relative_l2_luminance(p, t, 100.0, relative_clamp=2.0, clamp_excess="local", cells=cells, n_cells=2)
-    assert got.item() == pytest.approx(relative_l2_luminance(p, want, 100.0).item(), rel=1e-6)
-    # cell 0 keeps its luminance (32), cell 1 is untouched; spread over the batch would brighten cell 1 too
-    assert want[:3, 0].sum().item() == pytest.approx(32.0, rel=1e-6)
-    spread = relative_l2_luminance(p, t, 100.0, relative_clamp=2.0, clamp_excess="spread")
-    assert spread.item() != pytest.approx(got.item(), rel=1e-3)
-
-
-def test_cache_clamp_excess_local_groups_the_batch_by_the_boxs_cells():
-    from nrc.cache.radiance_cache import CLAMP_CELLS
-
-    grid = _grid()
-    cache = _cache(grid, cache={**CACHE, "loss": {"target_clamp": 100.0, "relative_clamp": 2.0,
-                                                  "clamp_excess": "local"}})
-    x, d = _batch(grid, 256, seed=1)
-    targets = torch.rand(256, 3, generator=torch.Generator().manual_seed(2)) ** 8 * 50.0  # a few far above the mean
-    raw = cache._raw(x, d)
-    ijk = ((grid.box.normalize(x) * CLAMP_CELLS).floor().long()).clamp(0, CLAMP_CELLS - 1)
-    cells = ijk[:, 0] + CLAMP_CELLS * (ijk[:, 1] + CLAMP_CELLS * ijk[:, 2])
-    with torch.no_grad():
-        prediction = cache.network(raw)
-        want = relative_l2_luminance(prediction, targets, 100.0, relative_clamp=2.0, clamp_excess="local",
-                                     cells=cells, n_cells=CLAMP_CELLS ** 3)
-        got = cache._loss(raw, targets)
-        spread = relative_l2_luminance(prediction, targets, 100.0, relative_clamp=2.0, clamp_excess="spread")
-    assert got.item() == pytest.approx(want.item(), rel=1e-6)
-    assert got.item() != pytest.approx(spread.item(), rel=1e-3)
-
-
 def test_loss_clamps_targets_and_handles_empty_batch():
     p = torch.tensor([[1.0, 1.0, 1.0]])
     huge = relative_l2_luminance(p, torch.tensor([[1e30, float("inf"), 5.0]]), target_clamp=8.0)

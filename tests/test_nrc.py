@@ -829,6 +829,35 @@ def test_the_thick_regime_starts_at_optical_depth_25():
         assert regime == want and (tau >= THICK_OPTICAL_DEPTH) == (want == "thick") and 20 < tau < 35
 
 
+def test_auto_clamp_excess_follows_the_regime():
+    """cache.loss.clamp_excess=auto: the clamped luminance is dropped in a thick cloud and spread over the batch in a
+    thin one or under a moving light (nrc/cache/settings.py, CLAMP_EXCESS); the regime is computed for it even where
+    no other key is auto; a cache built on its own (thick by default) drops it; a fixed value stays."""
+    from omegaconf import OmegaConf
+
+    from nrc.cache import build_radiance_cache
+    from nrc.cache.settings import CLAMP_EXCESS
+
+    assert CLAMP_EXCESS == {"thick": "drop", "moderate": "spread"}
+    fixed = ["renderer.training.carry_frames=0", "encoding.position.log2_hashmap_size=12",
+             "cache.loss.clamp_excess=auto"]
+    for density, animate, want in ((4.0, "none", "drop"), (0.5, "none", "spread"), (4.0, "sun", "spread")):
+        cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, *fixed, f"scene.volume.density_scale={density}",
+                       f"renderer.animate.mode={animate}"])
+        r = make_renderer("nrc", load_scene(cfg.scene), cfg)
+        assert r.cache.settings.loss_clamp_excess == want, (density, animate)
+    cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=0.5", "cache.loss.clamp_excess=drop"])
+    assert make_renderer("nrc", load_scene(cfg.scene), cfg).cache.settings.loss_clamp_excess == "drop"
+    assert build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, load_scene(cfg.scene).grid, "cpu", 0,
+                                training_paths=64).settings.loss_clamp_excess == "drop"
+    auto = {**OmegaConf.to_container(cfg.cache), "loss": {**OmegaConf.to_container(cfg.cache.loss),
+                                                          "clamp_excess": "auto"}}
+    assert build_radiance_cache(auto, cfg.encoding, cfg.extra_inputs, load_scene(cfg.scene).grid, "cpu", 0,
+                                training_paths=64).settings.loss_clamp_excess == "drop"
+    assert build_radiance_cache(auto, cfg.encoding, cfg.extra_inputs, load_scene(cfg.scene).grid, "cpu", 0,
+                                training_paths=64, thick=False).settings.loss_clamp_excess == "spread"
+
+
 def test_auto_unbiased_fraction_and_carry_frames():
     """training.unbiased_fraction=auto: every training path runs to the end under a static camera and light, thin
     or thick, and under a moving light (animate);

@@ -11,7 +11,7 @@ LUMINANCE_WEIGHTS = (0.299, 0.587, 0.114)
 
 def relative_l2_luminance(prediction: Tensor, target: Tensor, target_clamp: float, scale_floor: float = 0.0,
                           relative_clamp: float = 0.0, clamp_to: str = "prediction",
-                          clamp_excess: str = "drop", cells: Tensor | None = None, n_cells: int = 1) -> Tensor:
+                          clamp_excess: str = "drop") -> Tensor:
     """``mean_i sum_c (p_ic - t_ic)^2 / (Y(p_i)^2 + 0.01 + (f m)^2)``, the denominator detached, ``m`` the batch's
     mean target luminance ``|mean_j Y(t_j)|`` (after ``target_clamp``).
 
@@ -37,10 +37,7 @@ def relative_l2_luminance(prediction: Tensor, target: Tensor, target_clamp: floa
             back to the batch, every target of positive luminance scaled by ``1 + removed / kept`` (``kept`` their
             clamped luminance's sum), so the batch's summed target luminance is what it was before the clamp. The
             rare bright paths still take no large step of their own, and a cache whose prediction is low no longer
-            settles below the mean (the prediction-relative cap ratchets down with it otherwise). ``local``: the same
-            within each of ``n_cells`` groups of the batch (``cells``), so the luminance stays near where it was found.
-        cells: ``(N,)`` int64 group of each sample in ``[0, n_cells)``, for ``clamp_excess=local``.
-        n_cells: the number of groups.
+            settles below the mean (the prediction-relative cap ratchets down with it otherwise).
 
     Returns:
         Scalar loss; exactly 0 (still attached to the graph) for an empty batch.
@@ -58,16 +55,11 @@ def relative_l2_luminance(prediction: Tensor, target: Tensor, target_clamp: floa
             cap = relative_clamp * (torch.maximum(lum, mean) if clamp_to == "prediction" else mean)
             scale = torch.where(target_lum > cap, cap / target_lum, torch.ones_like(target_lum))
             target = target * scale
-            if clamp_excess != "drop":
+            if clamp_excess == "spread":
                 positive = target_lum > 0.0
-                removed = target_lum * (1.0 - scale)
-                kept = torch.where(positive, target_lum * scale, torch.zeros_like(target_lum))
-                if clamp_excess == "local":
-                    removed = removed.new_zeros(n_cells).index_add_(0, cells, removed[:, 0])
-                    kept = kept.new_zeros(n_cells).index_add_(0, cells, kept[:, 0])
-                    gain = (1.0 + removed / kept.clamp_min(torch.finfo(kept.dtype).tiny))[cells].unsqueeze(-1)
-                else:
-                    gain = 1.0 + removed.sum() / kept.sum().clamp_min(torch.finfo(kept.dtype).tiny)
-                target = target * torch.where(positive, gain, torch.ones_like(target_lum))
+                removed = (target_lum * (1.0 - scale)).sum()
+                kept = torch.where(positive, target_lum * scale, torch.zeros_like(target_lum)).sum()
+                gain = 1.0 + removed / kept.clamp_min(torch.finfo(kept.dtype).tiny)
+                target = target * torch.where(positive, gain, torch.ones_like(gain))
         denominator = denominator + (scale_floor * mean).square()
     return ((prediction - target).square() / denominator).sum(dim=-1).mean()

@@ -44,8 +44,6 @@ from nrc.volume.grid import DensityGrid
 
 DIRECTION_OTYPES = ("Identity", "Frequency", "TriangleWave", "OneBlob")
 MAX_TRAINING_GRAPHS = 4  # training batch sizes with a CUDA graph (RadianceCache.use_graphs); other sizes run eagerly
-CLAMP_CELLS = 4  # cache.loss.clamp_excess=local: the box cut into CLAMP_CELLS^3 cells, the clamped luminance given back
-# within each
 
 
 class _Forward(torch.nn.Module):
@@ -132,14 +130,9 @@ class RadianceCache:
 
     def _loss(self, raw: Tensor, targets: Tensor, net: Any = None) -> Tensor:
         """The loss of one training batch through ``net`` (default: the network)."""
-        cells = None
-        if self.settings.loss_clamp_excess == "local":  # the box's CLAMP_CELLS^3 cells (raw[:, :3]: the position in it)
-            ijk = (raw[:, :3] * CLAMP_CELLS).long().clamp(0, CLAMP_CELLS - 1)
-            cells = ijk[:, 0] + CLAMP_CELLS * (ijk[:, 1] + CLAMP_CELLS * ijk[:, 2])
         return relative_l2_luminance((self.network if net is None else net)(raw), targets, self.settings.target_clamp,
                                      self.settings.loss_scale_floor, self.settings.loss_relative_clamp,
-                                     self.settings.loss_clamp_to, self.settings.loss_clamp_excess, cells,
-                                     CLAMP_CELLS ** 3)
+                                     self.settings.loss_clamp_to, self.settings.loss_clamp_excess)
 
     def _training_loss(self, raw: Tensor, targets: Tensor) -> Tensor:
         """The loss of one training batch, through ``torch.compile`` when asked (its backward is compiled with it:
@@ -268,7 +261,8 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
         training_paths: the training paths a frame of the renderer that trains it, for a hash grid's
             ``log2_hashmap_size: auto`` (:func:`nrc.cache.encodings.factory.auto_log2_hashmap_size`); None for a
             cache built on its own (``auto`` is then an error).
-        thick: whether the medium is thick (the renderer's ``auto`` regime), for the same.
+        thick: whether the medium is thick (the renderer's ``auto`` regime), for the same and for
+            ``loss.clamp_excess: auto``.
         animated: whether the renderer's camera or light moves, for ``optimizer.lr_final_fraction: auto`` and
             ``extra_inputs.light_depth_resolution: auto``.
         lights: the scene's lights, for ``extra_inputs.light_depth`` (none: no light-depth column).
@@ -281,7 +275,7 @@ def build_radiance_cache(cache_cfg: Any, encoding_cfg: Any, extra_inputs_cfg: An
     """
     if torch.device(device).type == "cpu":
         retain_freed_memory()
-    settings = CacheSettings.from_config(ConfigReader(cache_cfg, "cache"), animated=animated)
+    settings = CacheSettings.from_config(ConfigReader(cache_cfg, "cache"), animated=animated, thick=thick)
     extras = ExtraInputs.from_config(ConfigReader(extra_inputs_cfg, "extra_inputs"))
     enc_cfg = ConfigReader(encoding_cfg, "encoding")
     pos_cfg, dir_cfg = enc_cfg.block("position"), enc_cfg.block("direction")

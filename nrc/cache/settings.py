@@ -16,7 +16,8 @@ Keys (all validated; unknown keys are errors):
   ``Y(p)^2 + 0.01``; :func:`nrc.cache.loss.relative_l2_luminance`); ``relative_clamp`` (>= 0, 0: off): a target
   of luminance above ``k x`` the larger of the cache's prediction and the batch's mean is scaled down to it
   (``clamp_to: prediction``; ``mean``: k x the batch's mean alone); ``clamp_excess``: ``drop`` the luminance the
-  clamp removes, or ``spread`` it over the batch's targets (the batch's summed target luminance kept).
+  clamp removes, or ``spread`` it over the batch's targets (the batch's summed target luminance kept), or ``auto``
+  (:data:`CLAMP_EXCESS`: drop in a thick cloud, spread otherwise; absent: drop).
 * ``query_chunk``: points per forward pass in :meth:`RadianceCache.query` (bounds memory).
 * ``compile_training``: ``torch.compile`` the training step's forward, loss and backward (dynamic batch size;
   the fused Adam step is already one kernel). Off by default: on the CPU it measured no faster than eager
@@ -30,6 +31,12 @@ from dataclasses import dataclass
 from nrc.config import ConfigReader
 from nrc.cache.optim import AdamSettings
 
+
+CLAMP_EXCESS = {"thick": "drop", "moderate": "spread"}  # loss.clamp_excess: auto, by the renderer's regime: in a
+# thin or moderate cloud (or under a moving camera or light) the relative clamp's lost luminance left the image dark
+# (cumulus 9 %, thin back-lit 19 % after 90 frames) and spreading it over the batch keeps the mean at no cost in error;
+# in a thick one the dropped luminance offsets Adam's upward drift and spreading it cost 7-15 % error and 1-3 %
+# brightness (docs/measurements/learning.md, "The clamp's lost luminance")
 
 LR_FINAL_FRACTION = {"static": 0.2, "animated": 1.0}  # optimizer.lr_final_fraction: auto, by whether the camera or
 # light moves: a static scene's cache settles at a fifth of the MLP's rate (it drifted bright at the full rate); a moving
@@ -65,14 +72,16 @@ class CacheSettings:
         return self.lr_final_fraction + (1.0 - self.lr_final_fraction) * 0.5 ** (step / self.lr_half_life)
 
     @classmethod
-    def from_config(cls, cfg: ConfigReader, animated: bool = False) -> CacheSettings:
+    def from_config(cls, cfg: ConfigReader, animated: bool = False, thick: bool = True) -> CacheSettings:
         """``animated``: whether the renderer's camera or light moves, for ``optimizer.lr_final_fraction: auto``
-        (:data:`LR_FINAL_FRACTION`)."""
+        (:data:`LR_FINAL_FRACTION`); ``thick``: whether the renderer's regime is thick (a static camera and light,
+        median optical depth >= 25), for ``loss.clamp_excess: auto`` (:data:`CLAMP_EXCESS`)."""
         net = cfg.block("network")
         opt = cfg.block("optimizer")
         ema = cfg.block("ema")
         loss = cfg.block("loss")
         lr_final = opt.get_float_or_auto("lr_final_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0)
+        clamp_excess = loss.get_choice("clamp_excess", ["drop", "spread", "auto"], "drop")
         settings = cls(
             n_neurons=net.get_int("n_neurons", lo=16, hi=1024),
             n_hidden_layers=net.get_int("n_hidden_layers", lo=1, hi=16),
@@ -93,7 +102,8 @@ class CacheSettings:
             loss_scale_floor=loss.get_float("scale_floor", 0.0, lo=0.0),
             loss_relative_clamp=loss.get_float("relative_clamp", 0.0, lo=0.0),
             loss_clamp_to=loss.get_choice("clamp_to", ["prediction", "mean"], "prediction"),
-            loss_clamp_excess=loss.get_choice("clamp_excess", ["drop", "spread", "local"], "drop"),
+            loss_clamp_excess=(CLAMP_EXCESS["thick" if thick else "moderate"] if clamp_excess == "auto"
+                               else clamp_excess),
             query_chunk=cfg.get_int("query_chunk", 1 << 16, lo=1),
             compile_training=cfg.get_bool("compile_training", False),
         )

@@ -312,6 +312,13 @@ class CacheGroups:
         position = self.encoding.get("position")
         return position.get("log2_hashmap_size") if isinstance(position, dict) else None
 
+    @property
+    def needs_regime(self) -> bool:
+        """Whether a key of these groups is ``auto`` by the scene's regime (:func:`auto_training_regime`): the hash
+        table's ``log2_hashmap_size`` or ``cache.loss.clamp_excess``."""
+        loss = self.cache.get("loss")
+        return self.log2_hashmap_size == "auto" or (isinstance(loss, dict) and loss.get("clamp_excess") == "auto")
+
 
 @dataclass(frozen=True)
 class NRCRendererSettings:
@@ -359,8 +366,9 @@ class NRCRendererSettings:
 def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettings:
     """The ``auto`` rules of ``renderer=nrc`` resolved for ``scene`` (a no-op on resolved settings): the training
     image sized to the pixels that see the medium (:func:`~nrc.render.radiance_caching.training_set.
-    auto_training_size`), ``unbiased_fraction`` (:func:`auto_unbiased_fraction`), and, where ``carry_frames`` or the
-    renderer's own cache's ``encoding.position.log2_hashmap_size`` is ``auto``, the scene's regime
+    auto_training_size`), ``unbiased_fraction`` (:func:`auto_unbiased_fraction`), and, where ``carry_frames``, the
+    renderer's own cache's ``encoding.position.log2_hashmap_size`` or its ``cache.loss.clamp_excess`` is ``auto``,
+    the scene's regime
     (:func:`auto_training_regime`: thick = median optical depth >= :data:`THICK_OPTICAL_DEPTH`, static camera and
     lights) and the values that follow from it."""
     if settings.resolved:
@@ -376,9 +384,9 @@ def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettin
         tr = replace(tr, width=w, height=h)
     if tr.unbiased_fraction is None:
         tr = replace(tr, unbiased_fraction=auto_unbiased_fraction(st.animate))
-    hash_auto = settings.cache is not None and settings.cache.log2_hashmap_size == "auto"
+    cache_auto = settings.cache is not None and settings.cache.needs_regime
     regime, tau = None, None
-    if tr.carry_frames is None or hash_auto:
+    if tr.carry_frames is None or cache_auto:
         regime, tau = auto_training_regime(scene, st.animate)
         if tr.carry_frames is None:
             tr = replace(tr, carry_frames=auto_carry_frames(regime, scene.albedo))
