@@ -111,12 +111,11 @@ def scene_type_table(summaries: dict[str, tuple[str, dict]]) -> list[str]:
              "(nearest time) | HDR-FLIP NRC+OIDN / pt+OIDN | earlier defaults (`nrc_v1`): NRC+OIDN / pt+OIDN, mean |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for name, (label, summ) in summaries.items():
-        den = _ratio(summ, HEADLINE + "+oidn", "pt+oidn")
-        if not name.startswith("oidn_") or den is None:
+        den, row = _ratio(summ, HEADLINE + "+oidn", "pt+oidn"), _row(summ, HEADLINE + "+oidn")
+        if not name.startswith("oidn_") or den is None or row is None:  # no single denoised NRC frame: accumulated
             continue
         raw, cross = _ratio(summ, HEADLINE, "pt"), _ratio(summ, HEADLINE, "pt+oidn")
         old, row_old = _ratio(summ, "nrc_v1+oidn", "pt+oidn"), _row(summ, "nrc_v1+oidn")
-        row = _row(summ, HEADLINE + "+oidn")
         pts = [r for r in summ["rows"] if r["mode"] == "single" and r.get("denoised") and r["renderer"] == "pt"]
         near = min(pts, key=lambda r: abs(r["time_s"] - den["time_s"])) if pts else {}
         lines.append(

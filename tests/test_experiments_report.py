@@ -177,3 +177,14 @@ def test_crossover_summary_states_where_nrc_pays_off(tmp_path):
     assert "A whole 60-frame animation of the turning sun (`scene=thick`, every 10th frame scored" in text
     assert "takes NRC 66 s with OIDN, and its error is 0.8x the path tracer + OIDN's" in text
     assert "| the table |" in ex.crossover_section(tmp_path)
+
+
+def test_an_accumulated_run_stays_out_of_the_single_frame_table():
+    """An accumulated run (``--mode accumulate``) has equal-time ratios but no single NRC + OIDN frame: the
+    scene-type table skips it instead of failing."""
+    single = summary(1.3, 1.02, 30)
+    accumulated = {**summary(0.9, 0.99, 30), "rows": [{**r, "mode": "accumulate"} for r in single["rows"]]}
+    table = ex.scene_type_table({"oidn_160x90_cumulus": ("cumulus", single),
+                                 "oidn_160x90_side_lit_accumulate": ("side-lit, accumulated", accumulated)})
+    rows = [line for line in table if line.startswith("| ") and not line.startswith("| run")]
+    assert len(rows) == 1 and rows[0].startswith("| cumulus") and "**1.3**" in rows[0]
