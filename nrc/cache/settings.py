@@ -34,9 +34,10 @@ from nrc.cache.optim import AdamSettings
 
 CLAMP_EXCESS = {"thick": "drop", "moderate": "spread"}  # loss.clamp_excess: auto, by the renderer's regime: in a
 # thin or moderate cloud (or under a moving camera or light) the relative clamp's lost luminance left the image dark
-# (cumulus 9 %, thin back-lit 19 % after 90 frames) and spreading it over the batch keeps the mean at no cost in error;
-# in a thick one spreading it cost 7-15 % error and 1-3 % brightness whatever the clamp's factor (the dropped
-# luminance offsets a brightness of the thick cache's own; docs/measurements/learning.md, "The clamp's lost luminance")
+# (cumulus 9 % after 30 frames, thin back-lit 19 % after 90); spread over the batch both end within 2 % at about
+# the same error (the back-lit cloud overshoots first: 5 % bright and 10 % more error after 30 frames); in a thick
+# one spreading it cost 7-15 % error and 1-3 % brightness whatever the clamp's factor (the dropped luminance offsets
+# a brightness of the thick cache's own; docs/measurements/learning.md, "The clamp's lost luminance")
 
 LR_FINAL_FRACTION = {"static": 0.2, "animated": 1.0}  # optimizer.lr_final_fraction: auto, by whether the camera or
 # light moves: a static scene's cache settles at a fifth of the MLP's rate (it drifted bright at the full rate); a moving
