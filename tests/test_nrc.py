@@ -860,9 +860,9 @@ def test_auto_clamp_excess_follows_the_regime():
 
 def test_auto_unbiased_fraction_and_carry_frames():
     """training.unbiased_fraction=auto: every training path runs to the end under a static camera and light, thin
-    or thick, and under a moving light (animate);
-    carry_frames=auto: 4 in the thick cloud of albedo >= 0.99, 0 else; a fixed number stays as given; other words
-    are config errors naming the key."""
+    or thick, and under a moving light (animate); carry_frames: 0 by default in a thick cloud too (a frame waits for
+    its training paths), a number stays as given, ``auto`` (removed) and negative numbers are config errors naming
+    the key."""
     from nrc.render.radiance_caching.settings import NRCSettings, auto_training_regime, auto_unbiased_fraction
     from nrc.volume.optical_depth import scene_optical_depth
 
@@ -873,24 +873,22 @@ def test_auto_unbiased_fraction_and_carry_frames():
         _, tau = auto_training_regime(scene)
         assert tau == pytest.approx(scene_optical_depth(scene).median, rel=0.25)  # on a smaller camera
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",
-                   "renderer.training.carry_frames=auto", "scene.volume.density_scale=4"])
+                   "scene.volume.density_scale=4"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction is None
     r = make_renderer("nrc", load_scene(cfg.scene), cfg, cache=StubCache(lambda x, d: torch.zeros_like(x)))
-    assert r.settings.training.unbiased_fraction == 1.0 and r.optical_depth >= THICK_OPTICAL_DEPTH
-    assert r.settings.training.carry_frames == 4 and r.tracer.carry_frames == 4  # carry_frames=auto: thick
-    grey = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=auto",  # only where
-                    "renderer.training.carry_frames=auto", "scene.volume.density_scale=4", "scene.volume.albedo=0.95"])
-    r = make_renderer("nrc", load_scene(grey.scene), grey, cache=StubCache(lambda x, d: torch.zeros_like(x)))
-    assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 1.0
-    thin = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=0.5",
-                    "renderer.training.carry_frames=auto"])
-    r = make_renderer("nrc", load_scene(thin.scene), thin, cache=StubCache(lambda x, d: torch.zeros_like(x)))
-    assert r.settings.training.carry_frames == 0 and r.settings.training.unbiased_fraction == 1.0
+    assert r.settings.training.unbiased_fraction == 1.0
+    assert auto_training_regime(r.scene)[1] >= THICK_OPTICAL_DEPTH
+    assert r.settings.training.carry_frames == 0 and r.tracer.carry_frames == 0  # thick: the frame waits
+    three = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=4",
+                     "renderer.training.carry_frames=3"])
+    r = make_renderer("nrc", load_scene(three.scene), three, cache=StubCache(lambda x, d: torch.zeros_like(x)))
+    assert r.settings.training.carry_frames == 3 and r.tracer.carry_frames == 3
     sun = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=4", "renderer.animate.mode=sun"])
     r = make_renderer("nrc", load_scene(sun.scene), sun, cache=StubCache(lambda x, d: torch.zeros_like(x)))
-    assert r.settings.training.unbiased_fraction == 1.0 and r.settings.training.carry_frames == 0  # moving: moderate
-    with pytest.raises(ConfigError, match="renderer.training.carry_frames"):
-        NRCSettings.from_config(compose(["renderer=nrc", "renderer.training.carry_frames=-1"]).renderer)
+    assert r.settings.training.unbiased_fraction == 1.0 and r.settings.training.carry_frames == 0
+    for bad in ("-1", "auto"):
+        with pytest.raises(ConfigError, match="renderer.training.carry_frames"):
+            NRCSettings.from_config(compose(["renderer=nrc", f"renderer.training.carry_frames={bad}"]).renderer)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "renderer.training.unbiased_fraction=0.1"])
     assert NRCSettings.from_config(cfg.renderer).training.unbiased_fraction == 0.1
     with pytest.raises(ConfigError, match="renderer.training.unbiased_fraction"):

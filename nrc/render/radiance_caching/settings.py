@@ -31,9 +31,8 @@ class TrainingSettings:
     unbiased_fraction: float | None  # probability that a training path never terminates into the cache; None: auto
     unbiased_max_vertices: int  # ... until this vertex after all (0: never; it runs to max_scatter)
     ring_buffer: int | None  # records kept from earlier frames; None: auto (ring_size: RING_FRAMES frames of the records a frame leaves)
-    carry_frames: int | None = None  # later frames a training path still going at its frame's end may go on in (0:
-    # the frame waits for it; in the last one it ends into the cache at its next vertex); None: auto
-    # (auto_training_regime)
+    carry_frames: int = 0  # later frames a training path still going at its frame's end may go on in (0: the frame
+    # waits for it; in the last one it ends into the cache at its next vertex)
     query_weights: str = "raw"  # cache weights of the training paths' terminal queries: ema | raw
     overlap: bool = False  # CPU: a frame's training steps run on a second thread during the next frame's one-thread
     # tail (nrc.render.radiance_caching.trainer); False: at the frame's end, on every thread
@@ -179,17 +178,21 @@ def _unbiased_fraction(tr: ConfigReader) -> float | None:
     return tr.get_float_or_auto("unbiased_fraction", lo=0.0, hi=1.0)
 
 
-def _carry_frames(tr: ConfigReader) -> int | None:
-    """``training.carry_frames``: ``auto`` (None: :func:`auto_training_regime`) or an integer >= 0."""
-    return tr.get_int_or_auto("carry_frames", lo=0)
+def _carry_frames(tr: ConfigReader) -> int:
+    """``training.carry_frames``: an integer >= 0 (``auto``, which carried 4 frames in a thick cloud until
+    2026-12-07, is gone: waiting learns faster there, docs/measurements/learning.md, "A frame that waits for its
+    training paths")."""
+    if tr.get_raw("carry_frames", 0) == "auto":
+        raise ConfigError("renderer.training.carry_frames=auto was removed on 2026-12-07 (it carried 4 frames in a "
+                          "thick, static cloud of albedo >= 0.99, else 0): give 0 (the default: a frame waits for its "
+                          "training paths) or a number of frames")
+    return tr.get_int("carry_frames", 0, lo=0)
 
 
 THICK_OPTICAL_DEPTH = 25.0  # auto: a scene whose median optical depth reaches this is thick (docs/nrc.md, "Learning speed")
 UNBIASED_FRACTION = {"static": 1.0, "animated": 1.0}  # auto's values, by whether the camera or light moves: every path
 # unbiased in both since 2026-12-07 (a quarter under a moving light left the turning sun 7 % dark with cache.loss's clamp;
 # docs/measurements/learning.md, "A loss for unbiased targets" and "A decaying learning rate")
-CARRY_FRAMES = {"moderate": 0, "thick": 4}  # auto's two values (docs/nrc.md, "Current defaults and why")
-CARRY_MIN_ALBEDO = 0.99  # auto carries only in a medium at least this white (cloud water; docs/measurements/nrc_frames.md)
 OPTICAL_DEPTH_PIXELS = 64 * 36  # auto: the optical depth is taken over a camera of about this many pixels
 
 
@@ -197,10 +200,8 @@ def auto_training_regime(scene: Any, animate: str = "none") -> tuple[str, float]
     """``(regime, median optical depth)``: ``thick`` where the scene's median optical depth over its camera rays
     (:func:`nrc.volume.optical_depth.scene_optical_depth`, on the same camera at about
     :data:`OPTICAL_DEPTH_PIXELS` pixels) reaches :data:`THICK_OPTICAL_DEPTH` and the camera and light are static
-    (``animate`` ``none``), else ``moderate``. The ``auto`` settings follow it: :data:`CARRY_FRAMES` (a thick
-    cloud's frame no longer waits for its long training paths; in a moderate one the carried quarter of unbiased
-    paths held the image darker: docs/nrc.md, "Current defaults and why") and the hash table's size
-    (:mod:`nrc.cache.encodings.factory`)."""
+    (``animate`` ``none``), else ``moderate``. The ``auto`` settings follow it: the hash table's size
+    (:mod:`nrc.cache.encodings.factory`) and ``cache.loss.clamp_excess`` (:mod:`nrc.cache.settings`)."""
     from nrc.volume.optical_depth import scene_optical_depth
 
     cam = scene.camera
@@ -208,15 +209,6 @@ def auto_training_regime(scene: Any, animate: str = "none") -> tuple[str, float]
     small = replace(cam, width=max(1, round(cam.width / k)), height=max(1, round(cam.height / k)))
     tau = scene_optical_depth(replace(scene, camera=small)).median
     return ("thick" if tau >= THICK_OPTICAL_DEPTH and animate == "none" else "moderate"), tau
-
-
-def auto_carry_frames(regime: str, albedo: float) -> int:
-    """``carry_frames: auto``: :data:`CARRY_FRAMES` of the regime (:func:`auto_training_regime`) in a medium of
-    albedo at least :data:`CARRY_MIN_ALBEDO`, else 0. In the thick cloud at albedo 0.95 carrying 4 frames gave a
-    30-35 % larger NRC+OIDN error after 30 frames than waiting (three seeds, two table sizes), at 0.99 and 1 a
-    smaller one (docs/measurements/nrc_frames.md, "Carried training paths end in the cache" and "A hash table sized to the
-    training paths"); albedos between were not measured, so those wait."""
-    return CARRY_FRAMES[regime] if albedo >= CARRY_MIN_ALBEDO else 0
 
 
 def auto_unbiased_fraction(animate: str = "none") -> float:
@@ -366,9 +358,9 @@ class NRCRendererSettings:
 def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettings:
     """The ``auto`` rules of ``renderer=nrc`` resolved for ``scene`` (a no-op on resolved settings): the training
     image sized to the pixels that see the medium (:func:`~nrc.render.radiance_caching.training_set.
-    auto_training_size`), ``unbiased_fraction`` (:func:`auto_unbiased_fraction`), and, where ``carry_frames``, the
-    renderer's own cache's ``encoding.position.log2_hashmap_size`` or its ``cache.loss.clamp_excess`` is ``auto``,
-    the scene's regime
+    auto_training_size`), ``unbiased_fraction`` (:func:`auto_unbiased_fraction`), and, where the renderer's own
+    cache's ``encoding.position.log2_hashmap_size`` or its ``cache.loss.clamp_excess`` is ``auto``, the scene's
+    regime
     (:func:`auto_training_regime`: thick = median optical depth >= :data:`THICK_OPTICAL_DEPTH`, static camera and
     lights) and the values that follow from it."""
     if settings.resolved:
@@ -384,11 +376,8 @@ def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettin
         tr = replace(tr, width=w, height=h)
     if tr.unbiased_fraction is None:
         tr = replace(tr, unbiased_fraction=auto_unbiased_fraction(st.animate))
-    cache_auto = settings.cache is not None and settings.cache.needs_regime
     regime, tau = None, None
-    if tr.carry_frames is None or cache_auto:
+    if settings.cache is not None and settings.cache.needs_regime:
         regime, tau = auto_training_regime(scene, st.animate)
-        if tr.carry_frames is None:
-            tr = replace(tr, carry_frames=auto_carry_frames(regime, scene.albedo))
     return replace(settings, nrc=replace(st, training=tr), resolved=True, optical_depth=tau,
                    regime=regime, medium_mask=mask)
