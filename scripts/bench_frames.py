@@ -62,7 +62,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--vdb", type=Path, default=VDB, help="the Disney cloud (default: ../shared/data/)")
     ap.add_argument("--nrc", action="append", default=[], metavar="KEY=VALUE",
-                    help="an override for the NRC renderer only (repeatable), e.g. renderer.training.carry_frames=0")
+                    help="an override for the NRC renderer only (repeatable), e.g. renderer.training.carry_frames=4")
     ap.add_argument("overrides", nargs="*", help="config overrides for both renderers")
     args = ap.parse_args()
     if args.frames <= args.skip:
