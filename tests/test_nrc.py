@@ -839,8 +839,7 @@ def test_auto_clamp_excess_follows_the_regime():
     from nrc.cache.settings import CLAMP_EXCESS
 
     assert CLAMP_EXCESS == {"thick": "drop", "moderate": "spread"}
-    fixed = ["renderer.training.carry_frames=0", "encoding.position.log2_hashmap_size=12",
-             "cache.loss.clamp_excess=auto"]
+    fixed = ["encoding.position.log2_hashmap_size=12", "cache.loss.clamp_excess=auto"]
     for density, animate, want in ((4.0, "none", "drop"), (0.5, "none", "spread"), (4.0, "sun", "spread")):
         cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, *fixed, f"scene.volume.density_scale={density}",
                        f"renderer.animate.mode={animate}"])
