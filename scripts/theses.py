@@ -100,7 +100,7 @@ LADDER_OURS: list[tuple[str, list[str]]] = [
     ("unbiased fraction auto (ours)", ["renderer.training.unbiased_fraction=auto"]),
     ("our loss (floor 1, clamp 20 x the prediction) and MLP rate (decaying to a fifth) (ours)",
      ["cache.loss.scale_floor=1.0", "cache.loss.relative_clamp=20.0", "cache.loss.clamp_to=prediction",
-      "cache.optimizer.lr_final_fraction=auto", "cache.optimizer.lr_half_life=20"]),
+      "cache.optimizer.lr_final_fraction=auto", "cache.optimizer.lr_half_life=auto", "cache.optimizer.lr_hold=auto"]),
     ("termination P(continue) 0 (ours)", ["renderer.termination.p_continue=0.0"]),
     ("our network (5 hidden layers, weight decay 1e-6) and ring buffer (auto) (ours)",
      ["cache.network.n_hidden_layers=5", "cache.optimizer.weight_decay=1e-6", "renderer.training.ring_buffer=auto"]),

@@ -46,6 +46,18 @@ def fresh_machines(monkeypatch, tmp_path):
     torch._dynamo.reset()
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``first(rank)`` (a cold compile: minutes each) move to the front of the collection, the lowest
+    rank first (the rest keep their order): pytest-xdist then hands them out first, so that none of them starts last
+    and runs on one worker while the other has finished (the long set's wall time; docs/testing.md)."""
+
+    def key(item: pytest.Item) -> tuple[int, int]:
+        mark = item.get_closest_marker("first")
+        return (1, 0) if mark is None else (0, mark.args[0] if mark.args else 0)
+
+    items.sort(key=key)
+
+
 from nrc.config import compose  # noqa: E402  (the resolved app config, as ``python -m nrc`` sees it)
 
 

@@ -144,6 +144,8 @@ ONEBLOB = {"otype": "OneBlob", "n_bins": 4}
          {}, "cache.optimizer.lr_final_fraction must be <= 1"),
         ({**CACHE, "optimizer": {**CACHE["optimizer"], "lr_half_life": 0}}, {"position": HASH, "direction": ONEBLOB},
          {}, "cache.optimizer.lr_half_life must be > 0"),
+        ({**CACHE, "optimizer": {**CACHE["optimizer"], "lr_hold": -1}}, {"position": HASH, "direction": ONEBLOB},
+         {}, "cache.optimizer.lr_hold must be >= 0"),
         ({**CACHE, "optimizer": {**CACHE["optimizer"], "lr_final_fraction": "most"}},
          {"position": HASH, "direction": ONEBLOB}, {}, "cache.optimizer.lr_final_fraction"),
         ({**CACHE, "query_chunk": 0}, {"position": HASH, "direction": ONEBLOB}, {}, "cache.query_chunk must be >= 1"),

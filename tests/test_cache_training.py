@@ -295,6 +295,8 @@ def test_mlp_learning_rate_schedule_falls_towards_its_final_fraction_and_leaves_
     cache = _cache(grid, cache=decay)
     assert [cache.settings.mlp_lr_factor(k) for k in (0, 2, 4)] == [1.0, 0.625, 0.4375]
     assert cache.settings.mlp_lr_factor(10_000) == pytest.approx(0.25)
+    held = _cache(grid, cache={**decay, "optimizer": {**decay["optimizer"], "lr_hold": 3}})  # the full rate for 3 steps
+    assert [held.settings.mlp_lr_factor(k) for k in (0, 3, 5, 7)] == [1.0, 1.0, 0.625, 0.4375]
     mlp, table = cache.optimizer.param_groups
     for k in range(5):
         x, d = _batch(grid, 32, k)

@@ -178,6 +178,7 @@ def test_debias_composes_with_reservoir_reuse(target):
 
 
 @pytest.mark.slow
+@pytest.mark.first(2)  # a cold compile of minutes: start it before the rest
 def test_compiled_debias_matches_eager(fresh_machines):
     """A real compile of the debias structure (the extra random lane and P entry): the same image as its step run
     eagerly (shadow rays inside the step), and another q reuses the compiled graph (q travels in P)."""

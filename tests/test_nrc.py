@@ -191,6 +191,7 @@ def test_zero_indirect_cache_with_ris_and_equiangular_is_a_path_tracer(backend):
 
 
 @pytest.mark.slow
+@pytest.mark.first(1)  # a cold compile of minutes: start it before the rest
 def test_compiled_nrc_matches_the_eager_nrc_and_the_oracle(fresh_machines):
     """A real compile of the NRC step (cold cache): the oracle-cache NRC image on ``backend=compiled`` agrees
     with the path tracer, and a second scene (other albedo, g, density scale, sun) reuses the compiled graph."""
@@ -829,22 +830,32 @@ def test_the_thick_regime_starts_at_optical_depth_25():
         assert regime == want and (tau >= THICK_OPTICAL_DEPTH) == (want == "thick") and 20 < tau < 35
 
 
-def test_auto_clamp_excess_follows_the_regime():
+def test_auto_clamp_excess_and_lr_hold_follow_the_regime():
     """cache.loss.clamp_excess=auto: the clamped luminance is dropped in a thick cloud and spread over the batch in a
-    thin one or under a moving light (nrc/cache/settings.py, CLAMP_EXCESS); the regime is computed for it even where
-    no other key is auto; a cache built on its own (thick by default) drops it; a fixed value stays."""
+    thin one or under a moving light (nrc/cache/settings.py, CLAMP_EXCESS); cache.optimizer.lr_hold / lr_half_life
+    auto: the MLP keeps its full rate for 40 steps in a thick cloud only, then decays with a half-life of 10 steps (20
+    from the start elsewhere: LR_HOLD); the regime is computed for either even where no other key is auto; a cache
+    built on its own (thick by default) drops it; a fixed value stays."""
     from omegaconf import OmegaConf
 
     from nrc.cache import build_radiance_cache
-    from nrc.cache.settings import CLAMP_EXCESS
+    from nrc.cache.settings import CLAMP_EXCESS, LR_HOLD
 
     assert CLAMP_EXCESS == {"thick": "drop", "moderate": "spread"}
-    fixed = ["encoding.position.log2_hashmap_size=12", "cache.loss.clamp_excess=auto"]
-    for density, animate, want in ((4.0, "none", "drop"), (0.5, "none", "spread"), (4.0, "sun", "spread")):
-        cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, *fixed, f"scene.volume.density_scale={density}",
-                       f"renderer.animate.mode={animate}"])
-        r = make_renderer("nrc", load_scene(cfg.scene), cfg)
-        assert r.cache.settings.loss_clamp_excess == want, (density, animate)
+    assert LR_HOLD == {"thick": (40, 10.0), "moderate": (0, 20.0)}
+    fixed = ["encoding.position.log2_hashmap_size=12"]
+    cases = ((4.0, "none", "drop", (40, 10.0)), (0.5, "none", "spread", (0, 20.0)), (4.0, "sun", "spread", (0, 20.0)))
+    for density, animate, want, (hold, half_life) in cases:
+        for auto in ("clamp_excess", "lr_hold", "lr_half_life"):  # each alone asks for the regime
+            keys = {"clamp_excess": "cache.loss.clamp_excess=drop", "lr_hold": "cache.optimizer.lr_hold=7",
+                    "lr_half_life": "cache.optimizer.lr_half_life=3"}
+            keys[auto] = keys[auto].split("=")[0] + "=auto"
+            cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, *fixed, *keys.values(),
+                           f"scene.volume.density_scale={density}", f"renderer.animate.mode={animate}"])
+            st = make_renderer("nrc", load_scene(cfg.scene), cfg).cache.settings
+            assert st.loss_clamp_excess == (want if auto == "clamp_excess" else "drop"), (density, animate, auto)
+            assert st.lr_hold == (hold if auto == "lr_hold" else 7), (density, animate, auto)
+            assert st.lr_half_life == (half_life if auto == "lr_half_life" else 3), (density, animate, auto)
     cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, "scene.volume.density_scale=0.5", "cache.loss.clamp_excess=drop"])
     assert make_renderer("nrc", load_scene(cfg.scene), cfg).cache.settings.loss_clamp_excess == "drop"
     assert build_radiance_cache(cfg.cache, cfg.encoding, cfg.extra_inputs, load_scene(cfg.scene).grid, "cpu", 0,

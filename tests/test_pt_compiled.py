@@ -399,6 +399,7 @@ def test_one_machine_serves_every_scene_of_a_structure():
 
 
 @pytest.mark.slow
+@pytest.mark.first(0)  # a cold compile of minutes: start it before the rest
 def test_compiled_step_renders_a_second_scene_without_recompiling(fresh_machines, monkeypatch, caplog):
     """A real compile (cold cache): the first scene compiles the step once; a second scene with another grid
     shape, density scale, g, albedo, light direction and camera recompiles nothing (Dynamo's graphs and the AOT
