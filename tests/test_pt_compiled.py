@@ -511,6 +511,7 @@ def test_row_views_become_pointers_only_where_that_is_the_same_thing():
     assert raw_row_views(WRAPPER.replace("run_impl", "other")) == (WRAPPER.replace("run_impl", "other"), 0)
 
 
+@pytest.mark.slow  # an ahead-of-time compile (~20-40 s, the wrapper's C++ build): the long set
 def test_a_package_with_row_pointers_computes_what_eager_code_does(tmp_path):
     """A step-like function that returns a stack of rows, built ahead of time with the rows as pointers, gives the
     eager function's output (integers bitwise, floats within rounding: compiled arithmetic), at several row

@@ -234,7 +234,10 @@ def test_ctrl_c_during_a_compile_stops_within_seconds(tmp_path, renderer):
     proc.wait(timeout=120)
     reader.join(10)
     err = "".join(lines)
-    assert proc.returncode == 130, err[-2000:]
+    # 130 (the app's exit), or SIGINT itself where a signal lands in the interpreter's shutdown after the app's exit
+    # (its handlers are then back to the default): a shell reports both as 130. Seen once, in a CI run on a slow host
+    # (docs/measurements/ci.md); the one line below is required either way
+    assert proc.returncode in (130, -signal.SIGINT), err[-2000:]
     assert "interrupted by SIGINT" in err and "Traceback" not in err
     assert "compiled the transport step in" not in err  # it stopped the compile instead of waiting for it
     assert not (tmp_path / "run" / "image.exr").exists()
