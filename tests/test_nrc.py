@@ -834,15 +834,15 @@ def test_auto_clamp_excess_and_lr_hold_follow_the_regime():
     """cache.loss.clamp_excess=auto: the clamped luminance is dropped in a thick cloud and spread over the batch in a
     thin one or under a moving light (nrc/cache/settings.py, CLAMP_EXCESS); cache.optimizer.lr_hold / lr_half_life
     auto: the MLP keeps its full rate for 40 steps in a thick cloud only, then decays with a half-life of 10 steps (20
-    from the start elsewhere: LR_HOLD); the regime is computed for either even where no other key is auto; a cache
+    from the start elsewhere: LR_SCHEDULE); the regime is computed for either even where no other key is auto; a cache
     built on its own (thick by default) drops it; a fixed value stays."""
     from omegaconf import OmegaConf
 
     from nrc.cache import build_radiance_cache
-    from nrc.cache.settings import CLAMP_EXCESS, LR_HOLD
+    from nrc.cache.settings import CLAMP_EXCESS, LR_SCHEDULE
 
     assert CLAMP_EXCESS == {"thick": "drop", "moderate": "spread"}
-    assert LR_HOLD == {"thick": (40, 10.0), "moderate": (0, 20.0)}
+    assert LR_SCHEDULE == {"thick": (40, 10.0), "moderate": (0, 20.0)}
     fixed = ["encoding.position.log2_hashmap_size=12"]
     cases = ((4.0, "none", "drop", (40, 10.0)), (0.5, "none", "spread", (0, 20.0)), (4.0, "sun", "spread", (0, 20.0)))
     for density, animate, want, (hold, half_life) in cases:

@@ -9,7 +9,7 @@ Keys (all validated; unknown keys are errors):
   1) and ``lr_half_life`` (Adam steps, > 0): the MLP's learning rate falls from ``lr`` towards
   ``lr_final_fraction x lr``, halving its distance every ``lr_half_life`` steps (1: constant;
   :meth:`CacheSettings.mlp_lr_factor`), after holding ``lr`` for the first ``lr_hold`` steps (>= 0); either may
-  be ``auto``: :data:`LR_HOLD` by the renderer's regime (absent: a half-life of 20 steps, no hold). Hash-grid
+  be ``auto``: :data:`LR_SCHEDULE` by the renderer's regime (absent: a half-life of 20 steps, no hold). Hash-grid
   tables take ``lr``/``eps`` from their encoding block, unscheduled.
 * ``ema``: ``alpha`` in ``[0, 1)`` (0.99; 0 disables averaging); ``window_fraction`` in ``(0, 1]``: the average
   spans at most about this fraction of the steps so far (1: the plain debiased EMA; :mod:`nrc.cache.ema`).
@@ -46,7 +46,7 @@ LR_FINAL_FRACTION = {"static": 0.2, "animated": 1.0}  # optimizer.lr_final_fract
 # light's keeps the full rate to follow it (docs/measurements/learning.md, "A decaying learning rate")
 
 
-LR_HOLD = {"thick": (40, 10.0), "moderate": (0, 20.0)}  # (optimizer.lr_hold, lr_half_life) where auto, by the
+LR_SCHEDULE = {"thick": (40, 10.0), "moderate": (0, 20.0)}  # (optimizer.lr_hold, lr_half_life) where auto, by the
 # renderer's regime: in a thick, static cloud the MLP keeps its full rate for the first 40 Adam steps (10 frames), then
 # falls towards its final fraction with a half-life of 10 steps: 8-14 % lower error at frames 10-20 than decaying from
 # the start with a half-life of 20, over frames 22-30 within 3 % at optical depth 39 (a constant rate: 13 % worse)
@@ -90,7 +90,7 @@ class CacheSettings:
         """``animated``: whether the renderer's camera or light moves, for ``optimizer.lr_final_fraction: auto``
         (:data:`LR_FINAL_FRACTION`); ``thick``: whether the renderer's regime is thick (a static camera and light,
         median optical depth >= 25), for ``loss.clamp_excess: auto`` (:data:`CLAMP_EXCESS`) and ``optimizer.lr_hold``
-        / ``lr_half_life: auto`` (:data:`LR_HOLD`)."""
+        / ``lr_half_life: auto`` (:data:`LR_SCHEDULE`)."""
         net = cfg.block("network")
         opt = cfg.block("optimizer")
         ema = cfg.block("ema")
@@ -98,7 +98,7 @@ class CacheSettings:
         lr_final = opt.get_float_or_auto("lr_final_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0)
         lr_hold = opt.get_int_or_auto("lr_hold", 0, lo=0)
         half_life = opt.get_float_or_auto("lr_half_life", 20.0, lo=0.0, lo_open=True)
-        auto_hold, auto_half_life = LR_HOLD["thick" if thick else "moderate"]
+        auto_hold, auto_half_life = LR_SCHEDULE["thick" if thick else "moderate"]
         clamp_excess = loss.get_choice("clamp_excess", ["drop", "spread", "auto"], "drop")
         settings = cls(
             n_neurons=net.get_int("n_neurons", lo=16, hi=1024),
