@@ -95,7 +95,8 @@ ENCODINGS = {"T2": ["encoding=triangle_oneblob", *NOT_HASH, "encoding.position.n
 # from the thesis's settings towards our defaults (conf/cache/default.yaml, conf/renderer/nrc.yaml, ...), cumulative
 LADDER_OURS: list[tuple[str, list[str]]] = [
     ("hash lr 3e-4, dense Adam (ours)", ["encoding.position.lr=3e-4", "encoding.position.lazy=false"]),
-    ("EMA over the last half of the steps (ours)", ["cache.ema.window_fraction=0.5"]),
+    ("EMA over the last half of the steps, a quarter while the MLP rate is held (ours)",
+     ["cache.ema.window_fraction=0.5", "cache.ema.hold_window_fraction=auto"]),
     ("cache target indirect (ours)", ["renderer.cache_target=indirect"]),
     ("unbiased fraction auto (ours)", ["renderer.training.unbiased_fraction=auto"]),
     ("our loss (floor 1, clamp 20 x the prediction) and MLP rate (decaying to a fifth) (ours)",
@@ -1017,6 +1018,7 @@ def settings_table(exp: Experiment) -> list[str]:
     keys = ["cache.network.n_neurons", "cache.network.n_hidden_layers", "cache.optimizer.lr", "encoding.position.otype",
             "encoding.position.n_levels", "encoding.position.lr", "encoding.position.log2_hashmap_size",
             "encoding.position.lazy", "encoding.direction.n_bins", "cache.ema.alpha", "cache.ema.window_fraction",
+            "cache.ema.hold_window_fraction",
             "extra_inputs.density", "batch_filter.name",
             "renderer.termination.min_vertices", "renderer.termination.p_continue", "renderer.cache_target",
             "renderer.training.unbiased_fraction", "renderer.training.carry_frames", "renderer.training.ring_buffer",

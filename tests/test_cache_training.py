@@ -174,6 +174,29 @@ def test_ema_window_fraction_bounds_the_average_to_recent_steps():
         WeightEMA(model, 0.99, window_fraction=0.0)
 
 
+def test_ema_hold_window_is_shorter_while_the_rate_is_held_then_grows():
+    """``hold_fraction`` replaces the window fraction for the first ``hold`` steps; after them the rate is the
+    window's own (the lerp's state kept), so the held EMA forgets the early zeros faster and ends where the plain
+    windowed one would be from its state."""
+    model = nn.Linear(1, 1, bias=False)
+    held = WeightEMA(model, 0.99, window_fraction=0.5, hold=8, hold_fraction=0.25)
+    plain = WeightEMA(model, 0.99, window_fraction=0.5)
+    assert [held.rate(k) for k in (1, 5, 8)] == [1.0, pytest.approx(0.5), pytest.approx(1 / 2.75)]
+    assert [held.rate(k) for k in (9, 200)] == [pytest.approx(plain.rate(9)), pytest.approx(plain.rate(200))]
+    assert WeightEMA(model, 0.99, 0.5, hold=8).rate(5) == pytest.approx(plain.rate(5))  # no hold fraction: f
+    for ema in (held, plain):  # 4 steps of 0, 4 of 1, then 4 of 1 again
+        for k in range(12):
+            with torch.no_grad():
+                model.weight.fill_(float(k >= 4))
+            ema.update()
+    zeros = lambda f, ks: math.prod(1 - 1 / (1 + f * (k - 1)) for k in ks)  # noqa: E731  (what is left of them)
+    assert held.shadow.weight.item() == pytest.approx(1 - zeros(0.25, range(5, 9)) * zeros(0.5, range(9, 13)))
+    assert plain.shadow.weight.item() == pytest.approx(1 - zeros(0.5, range(5, 13)))
+    assert held.shadow.weight.item() > plain.shadow.weight.item()
+    with pytest.raises(ValueError, match="hold_window_fraction"):
+        WeightEMA(model, 0.99, 0.5, hold=8, hold_fraction=1.5)
+
+
 def test_ema_weights_serve_queries_and_raw_weights_train():
     grid = _grid()
     cache = _cache(grid)

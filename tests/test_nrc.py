@@ -153,6 +153,7 @@ def test_zero_indirect_cache_is_a_path_tracer_to_the_terminal_vertex(backend, te
         assert_images_agree(full, pt)
 
 
+@pytest.mark.slow  # 26-30 s on two busy cores: the default set's CI warning
 def test_terminal_sky_samples_by_phase_remove_the_forward_peak_fireflies():
     """g 0.85, a zero cache at the first vertex: the image is that vertex's next-event estimate. Drawing a uniform-sky
     sample's direction by the sky or the phase function (``terminal_nee=mis``, one-sample MIS) instead of by the sky
@@ -834,25 +835,31 @@ def test_auto_clamp_excess_and_lr_hold_follow_the_regime():
     """cache.loss.clamp_excess=auto: the clamped luminance is dropped in a thick cloud and spread over the batch in a
     thin one or under a moving light (nrc/cache/settings.py, CLAMP_EXCESS); cache.optimizer.lr_hold / lr_half_life
     auto: the MLP keeps its full rate for 40 steps in a thick cloud only, then decays with a half-life of 10 steps (20
-    from the start elsewhere: LR_SCHEDULE); the regime is computed for either even where no other key is auto; a cache
-    built on its own (thick by default) drops it; a fixed value stays."""
+    from the start elsewhere: LR_SCHEDULE); cache.ema.hold_window_fraction auto: a quarter in a thick cloud, else the
+    window fraction (EMA_HOLD_WINDOW), and the EMA built with it; the regime is computed for each even where no other
+    key is auto; a cache built on its own (thick by default) drops it; a fixed value stays."""
     from omegaconf import OmegaConf
 
     from nrc.cache import build_radiance_cache
-    from nrc.cache.settings import CLAMP_EXCESS, LR_SCHEDULE
+    from nrc.cache.settings import CLAMP_EXCESS, EMA_HOLD_WINDOW, LR_SCHEDULE
 
     assert CLAMP_EXCESS == {"thick": "drop", "moderate": "spread"}
     assert LR_SCHEDULE == {"thick": (40, 10.0), "moderate": (0, 20.0)}
+    assert EMA_HOLD_WINDOW == {"thick": 0.25, "moderate": None}
     fixed = ["encoding.position.log2_hashmap_size=12"]
-    cases = ((4.0, "none", "drop", (40, 10.0)), (0.5, "none", "spread", (0, 20.0)), (4.0, "sun", "spread", (0, 20.0)))
-    for density, animate, want, (hold, half_life) in cases:
-        for auto in ("clamp_excess", "lr_hold", "lr_half_life"):  # each alone asks for the regime
+    cases = ((4.0, "none", "drop", (40, 10.0), 0.25), (0.5, "none", "spread", (0, 20.0), 0.5),
+             (4.0, "sun", "spread", (0, 20.0), 0.5))
+    for density, animate, want, (hold, half_life), window in cases:
+        for auto in ("clamp_excess", "lr_hold", "lr_half_life", "hold_window"):  # each alone asks for the regime
             keys = {"clamp_excess": "cache.loss.clamp_excess=drop", "lr_hold": "cache.optimizer.lr_hold=7",
-                    "lr_half_life": "cache.optimizer.lr_half_life=3"}
+                    "lr_half_life": "cache.optimizer.lr_half_life=3", "hold_window": "cache.ema.hold_window_fraction=0.7"}
             keys[auto] = keys[auto].split("=")[0] + "=auto"
             cfg = compose(["renderer=nrc", *SMALL, *NRC_SMALL, *fixed, *keys.values(),
                            f"scene.volume.density_scale={density}", f"renderer.animate.mode={animate}"])
-            st = make_renderer("nrc", load_scene(cfg.scene), cfg).cache.settings
+            cache = make_renderer("nrc", load_scene(cfg.scene), cfg).cache
+            st = cache.settings
+            assert st.ema_hold_window_fraction == (window if auto == "hold_window" else 0.7), (density, animate, auto)
+            assert (cache.ema.hold, cache.ema.hold_fraction) == (st.lr_hold, st.ema_hold_window_fraction)
             assert st.loss_clamp_excess == (want if auto == "clamp_excess" else "drop"), (density, animate, auto)
             assert st.lr_hold == (hold if auto == "lr_hold" else 7), (density, animate, auto)
             assert st.lr_half_life == (half_life if auto == "lr_half_life" else 3), (density, animate, auto)

@@ -10,6 +10,10 @@ included, which keeps a young cache dark and late. ``window_fraction`` f < 1 bou
 ``f k`` steps: the rate is ``max((1 - alpha) / mu_k, 1 / (1 + f (k - 1)))``, so the window grows with the cache's
 age until it reaches the EMA's own ``1 / (1 - alpha)`` steps (at ``k ~ 1 / (f (1 - alpha))``), after which the
 update is the plain one. f = 1 is the debiased EMA exactly (``(1 - alpha) / mu_k >= 1 / k`` always).
+
+While the MLP's learning rate is held at its full value (``cache.optimizer.lr_hold``: the raw weights move fastest)
+the window may be shorter: ``hold_fraction`` replaces f for the first ``hold`` steps; the window then grows from
+``hold_fraction k`` towards ``f k`` as new steps come in (the lerp's state is kept, only its rate changes).
 """
 
 from __future__ import annotations
@@ -29,15 +33,21 @@ class WeightEMA:
         alpha: decay in ``[0, 1)``; 0 makes the shadow equal the raw weights.
         window_fraction: in ``(0, 1]``: the average spans at most about this fraction of the steps so far
             (1: the debiased EMA).
+        hold: steps (from the first) whose window fraction is ``hold_fraction`` (the MLP rate's hold).
+        hold_fraction: in ``(0, 1]``, the window fraction of the first ``hold`` steps (None: ``window_fraction``).
     """
 
-    def __init__(self, model: nn.Module, alpha: float, window_fraction: float = 1.0) -> None:
+    def __init__(self, model: nn.Module, alpha: float, window_fraction: float = 1.0, hold: int = 0,
+                 hold_fraction: float | None = None) -> None:
         if not 0.0 <= alpha < 1.0:
             raise ValueError(f"EMA alpha must be in [0, 1), got {alpha}")
-        if not 0.0 < window_fraction <= 1.0:
-            raise ValueError(f"EMA window_fraction must be in (0, 1], got {window_fraction}")
+        for name, f in (("window_fraction", window_fraction), ("hold_window_fraction", hold_fraction)):
+            if f is not None and not 0.0 < f <= 1.0:
+                raise ValueError(f"EMA {name} must be in (0, 1], got {f}")
         self.alpha = alpha
         self.window_fraction = window_fraction
+        self.hold = hold
+        self.hold_fraction = window_fraction if hold_fraction is None else hold_fraction
         self.step = 0
         self.model = model
         self.shadow = copy.deepcopy(model).requires_grad_(False).eval()
@@ -53,7 +63,8 @@ class WeightEMA:
     def rate(self, k: int) -> float:
         """The lerp rate of step ``k`` (from 1): the debiased rate, or the age-bounded window's where larger."""
         debiased = (1.0 - self.alpha) / (1.0 - self.alpha**k)
-        return max(debiased, 1.0 / (1.0 + self.window_fraction * (k - 1)))
+        f = self.hold_fraction if k <= self.hold else self.window_fraction
+        return max(debiased, 1.0 / (1.0 + f * (k - 1)))
 
     def state_dict(self) -> dict[str, Any]:
         return {"step": self.step, "shadow": self.shadow.state_dict()}

@@ -80,7 +80,8 @@ class RadianceCache:
         self.network = network
         self.optimizer = optimizer
         self.settings = settings
-        self.ema = WeightEMA(network, settings.ema_alpha, settings.ema_window_fraction)
+        self.ema = WeightEMA(network, settings.ema_alpha, settings.ema_window_fraction, settings.lr_hold,
+                             settings.ema_hold_window_fraction)
         self.device = next(network.parameters()).device
         self.n_steps = 0
         self.n_skipped_steps = 0

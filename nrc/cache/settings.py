@@ -12,7 +12,9 @@ Keys (all validated; unknown keys are errors):
   be ``auto``: :data:`LR_SCHEDULE` by the renderer's regime (absent: a half-life of 20 steps, no hold). Hash-grid
   tables take ``lr``/``eps`` from their encoding block, unscheduled.
 * ``ema``: ``alpha`` in ``[0, 1)`` (0.99; 0 disables averaging); ``window_fraction`` in ``(0, 1]``: the average
-  spans at most about this fraction of the steps so far (1: the plain debiased EMA; :mod:`nrc.cache.ema`).
+  spans at most about this fraction of the steps so far (1: the plain debiased EMA; :mod:`nrc.cache.ema`);
+  ``hold_window_fraction`` in ``(0, 1]`` or ``auto``: the fraction while the MLP's rate is held (the first
+  ``optimizer.lr_hold`` steps; :data:`EMA_HOLD_WINDOW` by the regime; absent: ``window_fraction``).
 * ``loss``: ``target_clamp`` (> 0, radiance units): targets are clamped to ``[-c, c]``; ``scale_floor`` (>= 0):
   the relative loss's denominator gains ``(f x the batch's mean target luminance)^2`` (0: Müller et al.'s
   ``Y(p)^2 + 0.01``; :func:`nrc.cache.loss.relative_l2_luminance`); ``relative_clamp`` (>= 0, 0: off): a target
@@ -53,6 +55,13 @@ LR_SCHEDULE = {"thick": (40, 10.0), "moderate": (0, 20.0)}  # (optimizer.lr_hold
 # and 3-5 % lower at 98-196; moderate clouds, not measured with it, decay from step 0 (docs/measurements/learning.md,
 # "Holding the MLP's rate")
 
+EMA_HOLD_WINDOW = {"thick": 0.25, "moderate": None}  # ema.hold_window_fraction: auto, by the regime (None: the
+# window_fraction): while the MLP's rate is held the EMA averages about the last quarter of the steps, then its window
+# grows towards the last half: at frame 10 the image 1-3 % brighter (0.93-1.00 of the reference) and its error 2-8 %
+# lower (5 seeds), frames 20-30 within 2 %, frame 3 worse; a quarter throughout lost 7-22 % at frame 30, a sixth during
+# the hold cost frame 3 1.3-1.7x for at most 5 % at frame 10 (docs/measurements/learning.md, "A shorter EMA window
+# while the rate is held")
+
 
 @dataclass(frozen=True)
 class CacheSettings:
@@ -75,6 +84,7 @@ class CacheSettings:
     lr_final_fraction: float = 1.0
     lr_half_life: float = 20.0
     lr_hold: int = 0
+    ema_hold_window_fraction: float | None = None
 
     def mlp_lr_factor(self, step: int) -> float:
         """The MLP's learning rate at Adam step ``step`` (0-based) over ``optimizer.lr``:
@@ -100,6 +110,8 @@ class CacheSettings:
         half_life = opt.get_float_or_auto("lr_half_life", 20.0, lo=0.0, lo_open=True)
         auto_hold, auto_half_life = LR_SCHEDULE["thick" if thick else "moderate"]
         clamp_excess = loss.get_choice("clamp_excess", ["drop", "spread", "auto"], "drop")
+        window = ema.get_float("window_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0)
+        hold_window = ema.get_float_or_auto("hold_window_fraction", window, lo=0.0, lo_open=True, hi=1.0)
         settings = cls(
             n_neurons=net.get_int("n_neurons", lo=16, hi=1024),
             n_hidden_layers=net.get_int("n_hidden_layers", lo=1, hi=16),
@@ -116,7 +128,9 @@ class CacheSettings:
             betas=(opt.get_float("beta1", 0.9, lo=0.0, hi=1.0, hi_open=True),
                    opt.get_float("beta2", 0.99, lo=0.0, hi=1.0, hi_open=True)),
             ema_alpha=ema.get_float("alpha", lo=0.0, hi=1.0, hi_open=True),
-            ema_window_fraction=ema.get_float("window_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0),
+            ema_window_fraction=window,
+            ema_hold_window_fraction=((EMA_HOLD_WINDOW["thick" if thick else "moderate"] or window)
+                                      if hold_window is None else hold_window),
             target_clamp=loss.get_float("target_clamp", lo=0.0, lo_open=True),
             loss_scale_floor=loss.get_float("scale_floor", 0.0, lo=0.0),
             loss_relative_clamp=loss.get_float("relative_clamp", 0.0, lo=0.0),

@@ -308,11 +308,12 @@ class CacheGroups:
     @property
     def needs_regime(self) -> bool:
         """Whether a key of these groups is ``auto`` by the scene's regime (:func:`auto_training_regime`): the hash
-        table's ``log2_hashmap_size``, ``cache.loss.clamp_excess`` or ``cache.optimizer.lr_hold`` /
-        ``lr_half_life``."""
-        loss, opt = self.cache.get("loss"), self.cache.get("optimizer")
+        table's ``log2_hashmap_size``, ``cache.loss.clamp_excess``, ``cache.optimizer.lr_hold`` / ``lr_half_life``
+        or ``cache.ema.hold_window_fraction``."""
+        loss, opt, ema = (self.cache.get(k) for k in ("loss", "optimizer", "ema"))
         return (self.log2_hashmap_size == "auto" or (isinstance(loss, dict) and loss.get("clamp_excess") == "auto")
-                or (isinstance(opt, dict) and "auto" in (opt.get("lr_hold"), opt.get("lr_half_life"))))
+                or (isinstance(opt, dict) and "auto" in (opt.get("lr_hold"), opt.get("lr_half_life")))
+                or (isinstance(ema, dict) and ema.get("hold_window_fraction") == "auto"))
 
 
 @dataclass(frozen=True)
