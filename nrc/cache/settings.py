@@ -108,7 +108,8 @@ class CacheSettings:
         lr_final = opt.get_float_or_auto("lr_final_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0)
         lr_hold = opt.get_int_or_auto("lr_hold", 0, lo=0)
         half_life = opt.get_float_or_auto("lr_half_life", 20.0, lo=0.0, lo_open=True)
-        auto_hold, auto_half_life = LR_SCHEDULE["thick" if thick else "moderate"]
+        regime = "thick" if thick else "moderate"
+        auto_hold, auto_half_life = LR_SCHEDULE[regime]
         clamp_excess = loss.get_choice("clamp_excess", ["drop", "spread", "auto"], "drop")
         window = ema.get_float("window_fraction", 1.0, lo=0.0, lo_open=True, hi=1.0)
         hold_window = ema.get_float_or_auto("hold_window_fraction", window, lo=0.0, lo_open=True, hi=1.0)
@@ -129,13 +130,13 @@ class CacheSettings:
                    opt.get_float("beta2", 0.99, lo=0.0, hi=1.0, hi_open=True)),
             ema_alpha=ema.get_float("alpha", lo=0.0, hi=1.0, hi_open=True),
             ema_window_fraction=window,
-            ema_hold_window_fraction=((EMA_HOLD_WINDOW["thick" if thick else "moderate"] or window)
+            ema_hold_window_fraction=((EMA_HOLD_WINDOW[regime] or window)
                                       if hold_window is None else hold_window),
             target_clamp=loss.get_float("target_clamp", lo=0.0, lo_open=True),
             loss_scale_floor=loss.get_float("scale_floor", 0.0, lo=0.0),
             loss_relative_clamp=loss.get_float("relative_clamp", 0.0, lo=0.0),
             loss_clamp_to=loss.get_choice("clamp_to", ["prediction", "mean"], "prediction"),
-            loss_clamp_excess=(CLAMP_EXCESS["thick" if thick else "moderate"] if clamp_excess == "auto"
+            loss_clamp_excess=(CLAMP_EXCESS[regime] if clamp_excess == "auto"
                                else clamp_excess),
             query_chunk=cfg.get_int("query_chunk", 1 << 16, lo=1),
             compile_training=cfg.get_bool("compile_training", False),

@@ -201,8 +201,8 @@ def auto_training_regime(scene: Any, animate: str = "none") -> tuple[str, float]
     (:func:`nrc.volume.optical_depth.scene_optical_depth`, on the same camera at about
     :data:`OPTICAL_DEPTH_PIXELS` pixels) reaches :data:`THICK_OPTICAL_DEPTH` and the camera and light are static
     (``animate`` ``none``), else ``moderate``. The ``auto`` settings follow it: the hash table's size
-    (:mod:`nrc.cache.encodings.factory`), ``cache.loss.clamp_excess`` and ``cache.optimizer.lr_hold`` /
-    ``lr_half_life`` (:mod:`nrc.cache.settings`)."""
+    (:mod:`nrc.cache.encodings.factory`) and the cache's keys that :attr:`CacheGroups.needs_regime` lists
+    (:mod:`nrc.cache.settings`)."""
     from nrc.volume.optical_depth import scene_optical_depth
 
     cam = scene.camera
@@ -362,10 +362,10 @@ class NRCRendererSettings:
 def resolve_auto(settings: NRCRendererSettings, scene: Any) -> NRCRendererSettings:
     """The ``auto`` rules of ``renderer=nrc`` resolved for ``scene`` (a no-op on resolved settings): the training
     image sized to the pixels that see the medium (:func:`~nrc.render.radiance_caching.training_set.
-    auto_training_size`), ``unbiased_fraction`` (:func:`auto_unbiased_fraction`), and, where the renderer's own
-    cache's ``encoding.position.log2_hashmap_size``, ``cache.loss.clamp_excess``, ``cache.optimizer.lr_hold`` or
-    ``lr_half_life`` is ``auto``, the scene's regime (:func:`auto_training_regime`: thick = median optical depth >=
-    :data:`THICK_OPTICAL_DEPTH`, static camera and lights) and the values that follow from it."""
+    auto_training_size`), ``unbiased_fraction`` (:func:`auto_unbiased_fraction`), and, where a key of the renderer's
+    own cache is ``auto`` by the regime (:attr:`CacheGroups.needs_regime`), the scene's regime
+    (:func:`auto_training_regime`: thick = median optical depth >= :data:`THICK_OPTICAL_DEPTH`, static camera and
+    lights) and the values that follow from it."""
     if settings.resolved:
         return settings
     from nrc.render.radiance_caching.training_set import auto_training_size, medium_pixel_mask
