@@ -150,8 +150,11 @@ def test_light_depth_resolution_auto_is_coarser_when_the_light_moves():
     assert light_depth_cells(auto, False) == LIGHT_DEPTH_CELLS["static"] > light_depth_cells(auto, True)
     fixed = ExtraInputs(light_depth=True, light_depth_resolution=12)
     assert light_depth_cells(fixed, True) == 12
-    grid = DensityGrid(torch.ones(16, 8, 4), center=(0, 0, 0), diagonal=2.0, density_scale=1.0)
+    grid = DensityGrid(torch.ones(64, 32, 16), center=(0, 0, 0), diagonal=2.0, density_scale=1.0)
     builder = InputBuilder(grid, "spherical", ExtraInputs(light_depth=True), (_sun([0.0, -1.0, 0.0]),), animated=True)
     assert builder.light_field._data.shape == (1, 1, 8, 16, 32)  # (1, C, z, y, x): 32 cells along x
     static = InputBuilder(grid, "spherical", ExtraInputs(light_depth=True), (_sun([0.0, -1.0, 0.0]),))
     assert static.light_field._data.shape == (1, 1, 16, 32, 64)
+    small = DensityGrid(torch.ones(16, 8, 4), center=(0, 0, 0), diagonal=2.0, density_scale=1.0)
+    capped = InputBuilder(small, "spherical", ExtraInputs(light_depth=True), (_sun([0.0, -1.0, 0.0]),))
+    assert capped.light_field._data.shape == (1, 1, 4, 8, 16)  # never finer than the medium's own cells

@@ -85,3 +85,29 @@ def test_light_field_of_a_constant_medium_is_sigma_times_the_distance_to_the_lig
     assert axis_chord_depth(grid) == pytest.approx(0.5 * 8.0)
     with pytest.raises(ValueError, match="exactly one"):
         light_optical_depth_field(grid)
+
+
+def test_a_kept_light_field_is_read_back_for_the_same_medium_and_light_and_made_anew_otherwise(tmp_path, monkeypatch):
+    """``keep=True``: the field is marched once and read from disk the next time (the same values, bitwise); another
+    density scale, grid value or light direction is another entry."""
+    from nrc.volume import optical_depth as od_module
+    from nrc.volume.optical_depth import light_optical_depth_field
+
+    monkeypatch.setenv("NRC_CACHE_DIR", str(tmp_path))
+    marched = []
+    march = od_module._midpoint_depth
+    monkeypatch.setattr(od_module, "_midpoint_depth", lambda *a: marched.append(1) or march(*a))
+    g = torch.rand((6, 5, 4), generator=torch.Generator().manual_seed(3))
+    sun = torch.tensor([0.3, -1.0, 0.2])
+    first = light_optical_depth_field(_grid(g), direction=sun, resolution=6, keep=True)
+    n = len(marched)
+    assert n > 0 and len(list((tmp_path / "light_depth").glob("*.npy"))) == 1
+    again = light_optical_depth_field(_grid(g.clone()), direction=sun.clone(), resolution=6, keep=True)
+    assert len(marched) == n  # read back, not marched
+    assert torch.equal(again, first) and torch.equal(first, light_optical_depth_field(_grid(g), direction=sun,
+                                                                                      resolution=6))
+    g2 = g.clone()
+    g2[2, 2, 2] += 1.0
+    for grid, light in ((_grid(g, scale=3.0), sun), (_grid(g2), sun), (_grid(g), torch.tensor([0.0, -1.0, 0.0]))):
+        light_optical_depth_field(grid, direction=light, resolution=6, keep=True)
+    assert len(list((tmp_path / "light_depth").glob("*.npy"))) == 4

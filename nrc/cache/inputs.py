@@ -150,6 +150,7 @@ class InputBuilder:
         self._key: tuple[float, ...] | None = None
         self._light_column = extras.light_depth and key_light(lights, grid.box) is not None
         self._cells = light_depth_cells(extras, animated)
+        self._keep = not animated  # a static light's field is kept on disk; a moving light's changes every frame
         if self._light_column:
             self._log_ref = math.log1p(max(axis_chord_depth(grid), 1e-6))
             self.set_lights(lights)
@@ -170,7 +171,7 @@ class InputBuilder:
         key = (float(directional), *(float(v) for v in vec))
         if key == self._key:
             return False
-        tau = light_optical_depth_field(self.grid, resolution=self._cells,
+        tau = light_optical_depth_field(self.grid, resolution=self._cells, keep=self._keep,
                                         **{"direction" if directional else "position": vec})
         value = (torch.log1p(tau) / self._log_ref).clamp(0.0, 1.0)
         if self.light_field is None:

@@ -16,6 +16,7 @@ centre is at ``i + 0.5``; ``u = (x - box.lo) / voxel_size``.
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import torch
@@ -107,6 +108,7 @@ class DensityGrid:
         self._density_field = CellField(self.density)
         self._gradient: CellField | None = None
         self._laplacian: CellField | None = None
+        self._values_hash: str | None = None  # fingerprint()'s hash of the values, made once
 
     # ---------------------------------------------------------------- transforms
     def world_to_grid(self, x: Tensor) -> Tensor:
@@ -116,6 +118,15 @@ class DensityGrid:
     def grid_to_world(self, u: Tensor) -> Tensor:
         """Continuous cell coordinates ``(N, 3)`` -> world points ``(N, 3)``."""
         return self.box.lo + u * self.voxel_size
+
+    def fingerprint(self) -> str:
+        """A hash of what ``sigma_t`` reads: the grid's values (hashed once: they are never changed in place), its
+        shape, the density scale and the box; the key of arrays derived from the medium and kept on disk
+        (:func:`nrc.volume.optical_depth.light_optical_depth_field`)."""
+        if self._values_hash is None:
+            self._values_hash = hashlib.sha1(self.density.detach().cpu().numpy().tobytes()).hexdigest()
+        box = (*self.box.lo.tolist(), *self.box.hi.tolist())
+        return hashlib.sha1(repr((self._values_hash, self.shape, self.density_scale, box)).encode()).hexdigest()[:20]
 
     # ---------------------------------------------------------------- lookups
     @property
