@@ -270,6 +270,10 @@ def test_explain_only_runs_the_ladder_of_a_saved_disagreement_without_re_measuri
     assert calls and all(extra for extra in calls)  # no call without a ladder step's overrides
     res = json.loads((tmp_path / f"{exp.id}.json").read_text())
     assert res["data"] == saved["data"] and [s["step"] for s in res["ladder"]] == [s for s, _ in exp.ladder()[:2]]
+    # the measurement's seconds, machine and date stay its own; the ladder's run is recorded beside them
+    assert all(res[k] == saved[k] for k in ("seconds", "machine", "date", "command"))
+    assert "--explain-only" in res["ladder_run"]["command"] and res["ladder_run"]["seconds"] >= 0
+    assert "The ladder re-measured" in th.page(exp, res)
     calls.clear()
     th.main(["--explain-only", "--quick", "--quiet", "--only", exp.id])  # its ladder is there: nothing again
     assert not calls
