@@ -147,6 +147,7 @@ def light_optical_depth_field(grid: Any, direction: Tensor | None = None, positi
         raise ValueError("light_optical_depth_field: give exactly one of direction and position")
     if not (resolution >= 1 and steps_per_voxel > 0):
         raise ValueError(f"resolution must be >= 1 and steps_per_voxel > 0, got {resolution}, {steps_per_voxel}")
+    resolution = min(resolution, max(grid.shape))
     if keep:
         light = (direction if direction is not None else position).detach().cpu().double().tolist()
         params = (grid.fingerprint(), direction is not None, tuple(light), resolution, steps_per_voxel, chunk,
@@ -155,7 +156,6 @@ def light_optical_depth_field(grid: Any, direction: Tensor | None = None, positi
             grid, direction, position, resolution, steps_per_voxel, chunk).cpu().numpy())
         return torch.from_numpy(field).to(grid.device)
     dev = grid.device
-    resolution = min(resolution, max(grid.shape))
     shape = [max(1, round(n * resolution / max(grid.shape))) for n in grid.shape]
     axes = [(torch.arange(n, device=dev, dtype=torch.float32) + 0.5) / n for n in shape]
     s = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
